@@ -1,0 +1,122 @@
+"""One configuration dataclass per stage, shared by the command line, the ROS nodes and the tests.
+
+Each field is a node parameter of the same name: its default is the parameter's default (also
+written in ``config/mosiv.yaml``) and its ``help`` metadata is the parameter's description.
+Values are in SI units (seconds, metres) unless the name says otherwise.
+
+This module only describes settings; it does not read files or talk to ROS.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+def _param(default: Any, help: str) -> Any:
+    """A dataclass field carrying the parameter description."""
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata={"help": help})
+    return field(default=default, metadata={"help": help})
+
+
+SCENE_HELP = (
+    "Scene declaration: a rosbag2 directory (its metadata custom_data 'mosiv.scene'), a YAML "
+    "file or inline YAML text; overrides the recording's declaration. Empty: the recording's."
+)
+
+
+@dataclass
+class ReplayConfig:
+    """bag_replay_node: publish a recorded bag's topics with their recorded stamps."""
+
+    bag: str = _param("", "Path of the rosbag2 directory to replay (required).")
+    rate: float = _param(1.0, "Playback rate: 1.0 = real time, 2.0 = twice as fast, 0 = as fast as possible.")
+    topics: list[str] = _param([], "Topics to replay; empty = every topic in the bag.")
+    start_delay: float = _param(0.5, "Seconds to wait after creating the publishers before the first message.")
+    wait_for_subscribers: int = _param(0, "Wait until every image topic has this many subscribers before starting.")
+    wait_timeout: float = _param(10.0, "Longest wait for subscribers, seconds; then replay anyway with a warning.")
+    loop: bool = _param(False, "Replay the bag again from the start when it ends.")
+    exit_when_done: bool = _param(True, "Shut the node down once the bag has been replayed.")
+    linger: float = _param(2.0, "Seconds to keep serving latched topics after the last message before exiting.")
+
+
+@dataclass
+class ReconstructionConfig:
+    """reconstruction_node: group camera frames by stamp, per-object geometry per frame (stage 1)."""
+
+    cameras: list[str] = _param([], "Camera names (topic prefixes); empty = discover /<cam>/color/image_raw topics.")
+    sync_tolerance: float = _param(0.005, "Largest stamp difference, seconds, between frames of one frame set.")
+    use_depth: bool = _param(True, "Fuse /<cam>/depth/image_rect when the recording has it.")
+    voxel_size: float = _param(0.005, "Edge of the reconstruction voxel grid, metres.")
+    scene: str = _param("", SCENE_HELP)
+
+
+@dataclass
+class LiftingConfig:
+    """lifting_node: fill each object's first observed frame with simulation particles (stage 2)."""
+
+    particle_spacing: float = _param(0.004, "Spacing of the particles that fill each object, metres.")
+    boundary_band: float = _param(0.008, "Half-width of the band of boundary particles around the surface, metres.")
+    boundary_beta: float = _param(5.0e3, "Sharpness beta of the boundary volume sigmoid, 1/m (M-PhyGs Eq. 1).")
+    boundary_eps: float = _param(1.0e-4, "Floor epsilon of the boundary volume sigmoid (M-PhyGs Eq. 1).")
+    scene: str = _param("", SCENE_HELP)
+
+
+@dataclass
+class IdentifyConfig:
+    """identify_node: fit per-object material parameters with the differentiable simulator (stage 3)."""
+
+    device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
+    window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.")
+    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.")
+    curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.")
+    iterations: int = _param(100, "Optimiser iterations per curriculum stage.")
+    learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.")
+    chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
+    silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
+    per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
+    output_yaml: str = _param("material_estimates.yaml", "Where to write the estimates (a prediction_node params file).")
+    scene: str = _param("", SCENE_HELP)
+
+
+@dataclass
+class PredictionConfig:
+    """prediction_node: roll the identified digital twin forward and publish the predicted motion."""
+
+    device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
+    horizon: float = _param(2.0, "Seconds to predict past the last observed frame.")
+    frame_rate: float = _param(10.0, "Predicted frames per second.")
+    estimates_file: str = _param("", "Material estimates YAML written by identify_node; empty = use the topic.")
+
+
+STAGE_CONFIGS: dict[str, type] = {
+    "bag_replay_node": ReplayConfig,
+    "reconstruction_node": ReconstructionConfig,
+    "lifting_node": LiftingConfig,
+    "identify_node": IdentifyConfig,
+    "prediction_node": PredictionConfig,
+}
+
+
+def describe(config_type: type) -> list[tuple[str, Any, str]]:
+    """(name, default, description) of every parameter of a stage config."""
+    defaults = config_type()
+    return [
+        (f.name, getattr(defaults, f.name), f.metadata.get("help", ""))
+        for f in dataclasses.fields(config_type)
+    ]
+
+
+def from_mapping(config_type: type, values: dict[str, Any]) -> Any:
+    """Build a stage config from a mapping, rejecting unknown keys with their names."""
+    names = {f.name for f in dataclasses.fields(config_type)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ValueError(
+            f"{config_type.__name__}: unknown parameter(s) {', '.join(unknown)}; "
+            f"known: {', '.join(sorted(names))}"
+        )
+    return config_type(**values)

@@ -1,0 +1,179 @@
+"""Start the node processes of a mosiv_ros graph with their parameters and stop them cleanly.
+
+``launch/mosiv.launch.py`` does this on a ROS 2 install; ``launch`` is not installable from
+PyPI, so the command line and the tests use this small runner instead, with the same
+executables (found through the ament index, as ``ros2 run`` finds them) and the same parameter
+file (``config/mosiv.yaml``). Each process's output is streamed line by line, prefixed with its
+name, and kept for inspection.
+
+This module starts processes; it never imports rclpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PACKAGE = "mosiv_ros"
+LOG = logging.getLogger(__name__)
+
+
+class GraphError(RuntimeError):
+    """A node process could not be found, started or stopped."""
+
+
+def package_prefix() -> Path:
+    """The install prefix of mosiv_ros, from the ament index (as ``ros2 run`` finds it)."""
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        return Path(get_package_prefix(PACKAGE))
+    except (PackageNotFoundError, OSError) as error:
+        raise GraphError(
+            f"package '{PACKAGE}' is not in the ament index ({error}); build it with "
+            "`colcon build` and source install/setup.bash (here: `. scripts/env.sh`)"
+        ) from error
+
+
+def executable_path(name: str) -> Path:
+    """``<prefix>/lib/mosiv_ros/<name>``: the file ``ros2 run mosiv_ros <name>`` executes."""
+    path = package_prefix() / "lib" / PACKAGE / name
+    if not os.access(path, os.X_OK):
+        raise GraphError(f"no executable '{name}' at {path}")
+    return path
+
+
+def default_params_file() -> Path:
+    """The installed ``share/mosiv_ros/config/mosiv.yaml``."""
+    return package_prefix() / "share" / PACKAGE / "config" / "mosiv.yaml"
+
+
+@dataclass
+class NodeSpec:
+    """One node process: its executable and the parameters that override the params file."""
+
+    executable: str
+    parameters: dict[str, Any] = field(default_factory=dict)
+
+
+class NodeProcess:
+    """A running node: its process, and the output lines it has printed so far."""
+
+    def __init__(self, spec: NodeSpec, argv: list[str], env: dict[str, str],
+                 sink: Callable[[str], None] | None) -> None:
+        self.name = spec.executable
+        self.lines: list[str] = []
+        self._sink = sink
+        self._new_line = threading.Condition()
+        self.process = subprocess.Popen(
+            argv, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, text=True, bufsize=1, start_new_session=True,
+        )
+        self._reader = threading.Thread(target=self._pump, name=f"out-{self.name}", daemon=True)
+        self._reader.start()
+
+    def _pump(self) -> None:
+        assert self.process.stdout is not None
+        for line in self.process.stdout:
+            line = line.rstrip("\n")
+            with self._new_line:
+                self.lines.append(line)
+                self._new_line.notify_all()
+            if self._sink is not None:
+                self._sink(f"[{self.name}] {line}")
+
+    def wait_for_line(self, text: str, timeout: float) -> str:
+        """Block until the process prints a line containing ``text``; return that line."""
+        deadline = time.monotonic() + timeout
+        seen = 0
+        with self._new_line:
+            while True:
+                for line in self.lines[seen:]:
+                    if text in line:
+                        return line
+                seen = len(self.lines)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or (self.process.poll() is not None and not self._reader.is_alive()):
+                    raise GraphError(
+                        f"{self.name} printed no line containing {text!r} within {timeout:.0f} s "
+                        f"(exit code {self.process.poll()}); last lines:\n" + "\n".join(self.lines[-20:])
+                    )
+                self._new_line.wait(min(remaining, 0.2))
+
+    def stop(self, timeout: float) -> int:
+        """SIGINT (a clean rclpy shutdown), then SIGTERM, then SIGKILL; return the exit code."""
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
+            if self.process.poll() is not None:
+                break
+            try:
+                os.killpg(self.process.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                LOG.warning("%s did not stop on %s", self.name, signal.Signals(sig).name)
+        self._reader.join(timeout)
+        return self.process.wait()
+
+
+class Graph:
+    """Node processes started in order, with one params file; stopped in reverse order."""
+
+    def __init__(
+        self,
+        specs: list[NodeSpec],
+        *,
+        params_file: Path | None = None,
+        env: dict[str, str] | None = None,
+        sink: Callable[[str], None] | None = print,
+    ) -> None:
+        self.specs = specs
+        self.params_file = Path(params_file) if params_file else default_params_file()
+        self.env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+        self.sink = sink
+        self.nodes: dict[str, NodeProcess] = {}
+        self._tmp = tempfile.TemporaryDirectory(prefix="mosiv-graph-")
+        self.env.setdefault("ROS_LOG_DIR", self._tmp.name)
+
+    def argv(self, spec: NodeSpec) -> list[str]:
+        """The command line of one node: ``--ros-args --params-file`` defaults, then overrides."""
+        argv = [str(executable_path(spec.executable)), "--ros-args",
+                "--params-file", str(self.params_file)]
+        if spec.parameters:
+            overrides = Path(self._tmp.name) / f"{spec.executable}.yaml"
+            overrides.write_text(yaml.safe_dump(
+                {spec.executable: {"ros__parameters": spec.parameters}}))
+            argv += ["--params-file", str(overrides)]
+        return argv
+
+    def start(self) -> Graph:
+        if not self.params_file.is_file():
+            raise GraphError(f"params file {self.params_file} does not exist")
+        for spec in self.specs:
+            self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+        return self
+
+    def stop(self, timeout: float = 5.0) -> dict[str, int]:
+        """Stop every node, last started first; return their exit codes."""
+        codes = {name: node.stop(timeout) for name, node in reversed(self.nodes.items())}
+        self._tmp.cleanup()
+        return codes
+
+    def __enter__(self) -> Graph:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+

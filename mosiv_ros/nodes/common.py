@@ -1,0 +1,141 @@
+"""What every mosiv_ros node shares: QoS profiles, parameters from a stage config, ``main``.
+
+Not for algorithms: a node hands each message to the ROS-free core and publishes what comes back.
+"""
+
+from __future__ import annotations
+
+import sys
+import typing
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (
+    DurabilityPolicy,
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+
+from mosiv_ros.config import describe
+from mosiv_ros.io.errors import MosivIOError
+
+#: Results a late subscriber must still get (DESIGN.md: reliable + transient_local, depth 1).
+LATCHED_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=1,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+#: Camera streams (DESIGN.md: the sensor-data profile).
+SENSOR_QOS = qos_profile_sensor_data
+#: Per-frame pipeline streams: every frame matters to the next stage.
+STREAM_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=100,
+    reliability=ReliabilityPolicy.RELIABLE,
+    durability=DurabilityPolicy.VOLATILE,
+)
+
+_PARAMETER_TYPES = {
+    bool: ParameterType.PARAMETER_BOOL,
+    int: ParameterType.PARAMETER_INTEGER,
+    float: ParameterType.PARAMETER_DOUBLE,
+    str: ParameterType.PARAMETER_STRING,
+    list[str]: ParameterType.PARAMETER_STRING_ARRAY,
+    list[int]: ParameterType.PARAMETER_INTEGER_ARRAY,
+    list[float]: ParameterType.PARAMETER_DOUBLE_ARRAY,
+}
+
+
+def declare_config(node: Node, config_type: type) -> Any:
+    """Declare one parameter per field of a stage config and return the config they give."""
+    hints = typing.get_type_hints(config_type)
+    values = {}
+    for name, default, help_text in describe(config_type):
+        descriptor = ParameterDescriptor(
+            description=help_text, type=_PARAMETER_TYPES[hints[name]]
+        )
+        values[name] = node.declare_parameter(name, default, descriptor).value
+    return config_type(**values)
+
+
+def print_help(node_name: str, config_type: type, summary: str) -> None:
+    """The text ``<node> --help`` prints: what the node does and its parameters."""
+    print(f"{node_name}: {summary}\n")
+    print(f"usage: ros2 run mosiv_ros {node_name} [--ros-args -p NAME:=VALUE | --params-file FILE]\n")
+    print("parameters:")
+    for name, default, help_text in describe(config_type):
+        print(f"  {name} (default {default!r})\n      {help_text}")
+
+
+def main_for(
+    node_name: str,
+    config_type: type,
+    factory: Callable[[], Node],
+    summary: str,
+    args: Sequence[str] | None = None,
+) -> int:
+    """Run a node until Ctrl-C or shutdown: the ``main`` of every mosiv_ros executable."""
+    argv = list(sys.argv if args is None else args)
+    user_args = argv[1 : argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if "-h" in user_args or "--help" in user_args:
+        print_help(node_name, config_type, summary)
+        return 0
+    rclpy.init(args=argv)
+    node = None
+    try:
+        node = factory()
+        node.get_logger().info(f"{node_name} ready")
+        done = getattr(node, "done", None)
+        if done is None:
+            rclpy.spin(node)
+        else:
+            rclpy.spin_until_future_complete(node, done)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (MosivIOError, ValueError) as error:
+        # Bad settings or input found while starting: one clear line, no traceback.
+        print(f"{node_name}: error: {error}", file=sys.stderr)
+        return 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    finished = getattr(node, "done", None)
+    return 1 if finished is not None and finished.done() and finished.result() is False else 0
+
+
+def guarded(
+    node: Node, topic: str, convert: Callable[[Any], Any], handle: Callable[[Any], None]
+) -> Callable[[Any], None]:
+    """A subscription callback: convert the message with the core, hand the result on.
+
+    A malformed message is logged with the topic and the problem and dropped; the node keeps
+    running.
+    """
+
+    def callback(msg: Any) -> None:
+        try:
+            value = convert(msg)
+        except (MosivIOError, ValueError) as error:
+            node.get_logger().error(f"{topic}: dropped malformed message: {error}")
+            return
+        handle(value)
+
+    return callback
+
+
+def log_cloud(node: Node, topic: str, cloud: Any) -> None:
+    """Log one line on a received point cloud: stamp, points, points per object."""
+    ids, counts = np.unique(cloud.object_id, return_counts=True)
+    objects = ", ".join(f"{i} ({n} pts)" for i, n in zip(ids.tolist(), counts.tolist())) or "none"
+    node.get_logger().info(
+        f"{topic}: stamp {cloud.stamp_ns} ns, {len(cloud.xyz)} points, objects {objects}"
+    )

@@ -1,0 +1,1 @@
+"""Differentiable multi-object MLS-MPM simulator (Warp), ROS-free."""

@@ -1,0 +1,25 @@
+"""Shared fixtures. Tests that start ROS processes get a DDS domain of their own."""
+
+from __future__ import annotations
+
+import os
+import random
+
+import pytest
+
+# Keep this run's DDS traffic on this host and away from other runs (CI, a developer's shell).
+os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(10, 99)))
+os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+
+
+# ros fixtures
+
+
+@pytest.fixture(scope="session")
+def shapes_bag(tmp_path_factory: pytest.TempPathFactory):
+    """A small analytic recording (2 cameras, 8 frames at 10 fps) written as MCAP."""
+    from mosiv_ros.synth.shapes import write_shapes_bag
+
+    return write_shapes_bag(
+        tmp_path_factory.mktemp("bags") / "shapes", n_frames=8, n_cameras=2, width=48, height=36
+    )

@@ -1,0 +1,97 @@
+"""The ament_python package contract that `ros2 run mosiv_ros <node>` relies on."""
+
+from __future__ import annotations
+
+import ast
+import os
+import subprocess
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+import yaml
+from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+from mosiv_ros.cli import default_parameters_yaml
+from mosiv_ros.config import STAGE_CONFIGS, describe
+from mosiv_ros.graph import Graph, NodeSpec
+
+ROOT = Path(__file__).resolve().parents[1]
+NODES = sorted(STAGE_CONFIGS)
+MSG_DEPENDENCIES = {"rclpy", "sensor_msgs", "geometry_msgs", "nav_msgs", "visualization_msgs",
+                    "diagnostic_msgs", "tf2_msgs", "std_msgs"}
+
+
+def test_ament_index_finds_package_xml_and_every_node_executable():
+    prefix = Path(get_package_prefix("mosiv_ros"))
+    share = Path(get_package_share_directory("mosiv_ros"))
+    assert share == prefix / "share" / "mosiv_ros"
+    manifest = ET.parse(share / "package.xml").getroot()
+    assert manifest.findtext("name") == "mosiv_ros"
+    assert set(NODES) == {"bag_replay_node", "reconstruction_node", "lifting_node",
+                          "identify_node", "prediction_node"}
+    for node in NODES:
+        executable = prefix / "lib" / "mosiv_ros" / node
+        assert executable.is_file() and os.access(executable, os.X_OK), executable
+    assert (share / "config" / "mosiv.yaml").is_file()
+    assert (share / "launch" / "mosiv.launch.py").is_file()
+
+
+def test_package_xml_is_format3_ament_python_with_the_message_dependencies():
+    manifest = ET.parse(ROOT / "package.xml").getroot()
+    assert manifest.get("format") == "3"
+    assert manifest.find("export/build_type").text == "ament_python"
+    depends = {e.text for e in manifest if e.tag in ("depend", "exec_depend")}
+    assert MSG_DEPENDENCIES <= depends
+
+
+def test_node_help_lists_every_parameter_with_its_default():
+    exe = Path(get_package_prefix("mosiv_ros")) / "lib" / "mosiv_ros" / "identify_node"
+    out = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    for name, default, _ in describe(STAGE_CONFIGS["identify_node"]):
+        assert f"  {name} (default {default!r})" in out.stdout
+
+
+def test_node_starts_and_stops_cleanly_on_sigint():
+    with Graph([NodeSpec("prediction_node")], sink=None) as graph:
+        node = graph.nodes["prediction_node"]
+        node.wait_for_line("prediction_node ready", timeout=60)
+        assert node.process.poll() is None
+        codes = graph.stop()
+    assert codes == {"prediction_node": 0}
+
+
+def test_bad_parameter_value_stops_the_node_with_a_clear_error(tmp_path):
+    with Graph([NodeSpec("bag_replay_node", {"bag": str(tmp_path / "nope")})], sink=None) as graph:
+        node = graph.nodes["bag_replay_node"]
+        assert node.process.wait(60) == 2
+        node.wait_for_line("nope", timeout=5)
+
+
+def test_params_file_equals_the_config_defaults():
+    assert (ROOT / "config" / "mosiv.yaml").read_text() == default_parameters_yaml()
+    document = yaml.safe_load(default_parameters_yaml())
+    assert set(document) == set(NODES)
+    for node, config in STAGE_CONFIGS.items():
+        params = document[node]["ros__parameters"]
+        for name, default, help_text in describe(config):
+            assert params[name] == default and type(params[name]) is type(default)
+            assert help_text, f"{node}.{name} has no description"
+
+
+def test_launch_file_starts_all_five_executables_with_the_params_file():
+    source = (ROOT / "launch" / "mosiv.launch.py").read_text()
+    tree = ast.parse(source)
+    names = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
+             and isinstance(n.value, str)}
+    assert set(NODES) <= names
+    assert "mosiv.yaml" in names and "generate_launch_description" in source
+
+
+@pytest.mark.parametrize("marker", ["resource/mosiv_ros"])
+def test_setup_installs_the_ament_marker_and_scripts_to_lib(marker):
+    setup_cfg = (ROOT / "setup.cfg").read_text()
+    assert "install_scripts=$base/lib/mosiv_ros" in setup_cfg
+    assert "script_dir=$base/lib/mosiv_ros" in setup_cfg
+    assert (ROOT / marker).is_file()
