@@ -78,7 +78,9 @@ class IdentifyConfig:
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
     checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
-    output_yaml: str = _param("material_estimates.yaml", "Where to write the estimates (a prediction_node params file).")
+    output_yaml: str = _param(
+        "material_estimates.yaml", "Where to write the estimates (a prediction_node params file)."
+    )
     scene: str = _param("", SCENE_HELP)
 
 

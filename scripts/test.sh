@@ -3,5 +3,5 @@
 # Extra arguments go to pytest, e.g.  bash scripts/test.sh -k bag
 set -euo pipefail
 # shellcheck source=scripts/env.sh
-. "$(dirname "${BASH_SOURCE[0]}")/env.sh"
+. "$(dirname "${BASH_SOURCE[0]}")/env.sh" || exit 1
 exec python -m pytest "$@"

@@ -12,6 +12,25 @@ os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(10, 99)))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 
+# io fixtures
+
+
+@pytest.fixture(scope="session")
+def small_recording():
+    """A 2-camera, 4-frame analytic recording with depth. Shared: copy it before changing it."""
+    from mosiv_ros.synth.shapes import make_shapes_recording
+
+    return make_shapes_recording(n_frames=4, n_cameras=2, width=24, height=18)
+
+
+@pytest.fixture(scope="session")
+def small_bag(small_recording, tmp_path_factory: pytest.TempPathFactory):
+    """``small_recording`` written as an uncompressed MCAP bag. Shared: never change it."""
+    from mosiv_ros.io.bag import write_recording
+
+    return write_recording(small_recording, tmp_path_factory.mktemp("io") / "small")
+
+
 # ros fixtures
 
 

@@ -51,7 +51,7 @@ def test_rate_zero_replays_without_waiting():
 def test_slow_consumer_does_not_accumulate_drift():
     fake = FakeTime()
     walls = []
-    for stamp in paced(STAMPS, lambda s: s, 1.0, clock=fake.clock, sleep=fake.sleep):
+    for _ in paced(STAMPS, lambda s: s, 1.0, clock=fake.clock, sleep=fake.sleep):
         walls.append(fake.now)
         fake.now += 0.05  # publishing takes 50 ms
     # Still due at the recorded offsets: the 50 ms are taken out of the following waits.

@@ -52,7 +52,7 @@ def mask_pixel_counts(frames: Iterable[Frame]) -> dict[int, int]:
     counts: dict[int, int] = {}
     for frame in frames:
         ids, n = np.unique(frame.mask[frame.mask > 0], return_counts=True)
-        for i, c in zip(ids.tolist(), n.tolist()):
+        for i, c in zip(ids.tolist(), n.tolist(), strict=True):
             counts[i] = counts.get(i, 0) + c
     return counts
 

@@ -55,7 +55,7 @@ class BagReplayNode(Node):
         if missing:
             raise ValueError(f"{self.config.bag}: topics not in the bag: {', '.join(missing)}")
         types = rclpy_types()
-        self._publishers = {
+        self._outputs = {
             topic: self.create_publisher(
                 types.get(info.msgtype), topic, qos_for(topic, info.message_count)
             )
@@ -71,7 +71,7 @@ class BagReplayNode(Node):
         wanted = self.config.wait_for_subscribers
         if wanted <= 0:
             return
-        images = [p for t, p in self._publishers.items() if t.endswith("/image_raw")]
+        images = [p for t, p in self._outputs.items() if t.endswith("/image_raw")]
         deadline = time.monotonic() + self.config.wait_timeout
         while any(p.get_subscription_count() < wanted for p in images):
             if time.monotonic() > deadline:
@@ -85,9 +85,9 @@ class BagReplayNode(Node):
 
     def _replay_once(self) -> int:
         count = 0
-        messages = (m for m in iter_raw_messages(self.config.bag) if m.topic in self._publishers)
+        messages = (m for m in iter_raw_messages(self.config.bag) if m.topic in self._outputs)
         for message in paced(messages, lambda m: m.log_time_ns, self.config.rate, stop=self._stop):
-            self._publishers[message.topic].publish(message.data)
+            self._outputs[message.topic].publish(message.data)
             count += 1
         return count
 
@@ -97,7 +97,7 @@ class BagReplayNode(Node):
             if self._stop.wait(self.config.start_delay):
                 return
             self.get_logger().info(
-                f"replaying {self.config.bag}: {len(self._publishers)} topics at rate "
+                f"replaying {self.config.bag}: {len(self._outputs)} topics at rate "
                 f"{self.config.rate:g}" + (" (as fast as possible)" if self.config.rate == 0 else "")
             )
             while not self._stop.is_set():

@@ -12,9 +12,10 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import (
     DurabilityPolicy,
     HistoryPolicy,
@@ -44,13 +45,13 @@ STREAM_QOS = QoSProfile(
 )
 
 _PARAMETER_TYPES = {
-    bool: ParameterType.PARAMETER_BOOL,
-    int: ParameterType.PARAMETER_INTEGER,
-    float: ParameterType.PARAMETER_DOUBLE,
-    str: ParameterType.PARAMETER_STRING,
-    list[str]: ParameterType.PARAMETER_STRING_ARRAY,
-    list[int]: ParameterType.PARAMETER_INTEGER_ARRAY,
-    list[float]: ParameterType.PARAMETER_DOUBLE_ARRAY,
+    bool: Parameter.Type.BOOL,
+    int: Parameter.Type.INTEGER,
+    float: Parameter.Type.DOUBLE,
+    str: Parameter.Type.STRING,
+    list[str]: Parameter.Type.STRING_ARRAY,
+    list[int]: Parameter.Type.INTEGER_ARRAY,
+    list[float]: Parameter.Type.DOUBLE_ARRAY,
 }
 
 
@@ -59,10 +60,12 @@ def declare_config(node: Node, config_type: type) -> Any:
     hints = typing.get_type_hints(config_type)
     values = {}
     for name, default, help_text in describe(config_type):
-        descriptor = ParameterDescriptor(
-            description=help_text, type=_PARAMETER_TYPES[hints[name]]
-        )
-        values[name] = node.declare_parameter(name, default, descriptor).value
+        kind = _PARAMETER_TYPES[hints[name]]
+        descriptor = ParameterDescriptor(description=help_text, type=kind.value)
+        # An empty list default would be typed BYTE_ARRAY by rclpy; declare such a parameter by
+        # its type instead. It (and an empty list in a params file) then reads as unset: the default.
+        value = node.declare_parameter(name, default if default != [] else kind, descriptor).value
+        values[name] = default if value is None else value
     return config_type(**values)
 
 
@@ -135,7 +138,7 @@ def guarded(
 def log_cloud(node: Node, topic: str, cloud: Any) -> None:
     """Log one line on a received point cloud: stamp, points, points per object."""
     ids, counts = np.unique(cloud.object_id, return_counts=True)
-    objects = ", ".join(f"{i} ({n} pts)" for i, n in zip(ids.tolist(), counts.tolist())) or "none"
+    objects = ", ".join(f"{i} ({n} pts)" for i, n in zip(ids.tolist(), counts.tolist(), strict=True)) or "none"
     node.get_logger().info(
         f"{topic}: stamp {cloud.stamp_ns} ns, {len(cloud.xyz)} points, objects {objects}"
     )

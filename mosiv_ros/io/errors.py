@@ -1,0 +1,70 @@
+"""Error types of the ROS-free I/O layer.
+
+One documented family: everything the bag, message and scene code raises on bad input is a
+``MosivIOError``. What it is for: telling a user which file, topic or field is wrong and how.
+What it is not for: programming errors (wrong argument types in our own code stay TypeError etc.).
+
+All three error types survive pickling (the process runner may move them between processes).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+class MosivIOError(Exception):
+    """Base class of every error raised by ``mosiv_ros.io`` on bad input data."""
+
+
+class BagError(MosivIOError):
+    """A rosbag2 recording cannot be read or written as mosiv_ros expects.
+
+    Attributes:
+        path: the bag directory (or the path given for it).
+        topic: the topic at fault, or None when the problem is not tied to one topic.
+        problem: what is wrong, in words.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], topic: str | None, problem: str) -> None:
+        self.path = Path(path)
+        self.topic = topic
+        self.problem = problem
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        where = f"{self.path}: topic {self.topic}" if self.topic else str(self.path)
+        return f"{where}: {self.problem}"
+
+    def __reduce__(self) -> tuple[type[BagError], tuple[Path, str | None, str]]:
+        return (type(self), (self.path, self.topic, self.problem))
+
+
+class MessageError(MosivIOError, ValueError):
+    """A message (or an array meant for one) has the wrong encoding, size or field layout.
+
+    The text names the message field and says what was expected and what was found.
+    """
+
+
+class SceneError(MosivIOError, ValueError):
+    """A scene declaration is invalid.
+
+    Attributes:
+        field: where in the declaration, e.g. ``objects[1].family`` (empty for the whole text).
+        problem: what is wrong, in words.
+        source: where the declaration came from (file, bag, ``<string>``), or None.
+    """
+
+    def __init__(self, field: str, problem: str, source: str | None = None) -> None:
+        self.field = field
+        self.problem = problem
+        self.source = source
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        text = f"{self.field}: {self.problem}" if self.field else self.problem
+        return f"{self.source}: {text}" if self.source else text
+
+    def __reduce__(self) -> tuple[type[SceneError], tuple[str, str, str | None]]:
+        return (type(self), (self.field, self.problem, self.source))

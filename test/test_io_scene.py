@@ -1,0 +1,175 @@
+"""Scene declarations: schema v1 parsing, validation messages, YAML round trip, loading."""
+
+from __future__ import annotations
+
+import pickle
+
+import pytest
+
+from mosiv_ros.io.errors import BagError, SceneError
+from mosiv_ros.io.scene import (
+    FAMILIES,
+    SCENE_KEY,
+    Scene,
+    SceneObject,
+    load_scene,
+    parse_scene,
+    scene_to_yaml,
+)
+
+EXAMPLE = """
+objects:
+  - {id: 1, name: red_ball, family: elastic}
+  - {id: 2, name: clay, family: plastic, params: {E: 2.0e5}}   # optional known/initial params
+gripper: {shape: sphere, radius: 0.02}   # optional collider of /gripper/pose
+"""
+
+
+def test_schema_v1_example_parses():
+    scene = parse_scene(EXAMPLE)
+    assert scene.objects == [
+        SceneObject(1, "red_ball", "elastic", {}),
+        SceneObject(2, "clay", "plastic", {"E": 2.0e5}),
+    ]
+    assert scene.gripper == {"shape": "sphere", "radius": 0.02}
+    assert scene.extra == {} and scene.ids == [1, 2]
+
+
+def test_scene_round_trips_through_yaml_exactly():
+    scene = Scene(
+        objects=[
+            SceneObject(7, "sand_pile", "sand", {"friction_angle_deg": 30, "E": 1.234567890123e6}),
+            SceneObject(65535, "water", "fluid"),
+        ],
+        gripper={"shape": "sphere", "radius": 0.015},
+        extra={"notes": "kept for later schema versions"},
+    )
+    text = scene_to_yaml(scene)
+    assert parse_scene(text) == scene
+    assert text.startswith("version: 1\n")
+
+
+def test_exponents_without_dot_or_sign_are_numbers():
+    scene = parse_scene("objects: [{id: 1, name: a, family: fluid, params: {mu: 1e-3, E: 5E6}}]")
+    assert scene.objects[0].params == {"mu": 1e-3, "E": 5e6}
+
+
+def test_empty_declaration_is_an_empty_scene():
+    assert parse_scene("") == Scene()
+    assert parse_scene("objects: []\n").objects == []
+
+
+def test_unknown_family_names_the_field_and_the_choices():
+    text = "objects:\n  - {id: 1, name: a, family: elastic}\n  - {id: 2, name: b, family: jelly}\n"
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="scene.yaml")
+    assert str(info.value) == (
+        "scene.yaml: objects[1].family: unknown material family 'jelly' "
+        "(expected one of elastic, plastic, sand, fluid)"
+    )
+    assert info.value.field == "objects[1].family" and FAMILIES == (
+        "elastic",
+        "plastic",
+        "sand",
+        "fluid",
+    )
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "problem"),
+    [
+        (
+            "objects: [{id: 1, name: a, family: elastic}, {id: 1, name: b, family: sand}]",
+            "objects[1].id",
+            "already used by objects[0]",
+        ),
+        (
+            "objects: [{id: 1, name: a, family: elastic}, {id: 2, name: a, family: sand}]",
+            "objects[1].name",
+            "already used by objects[0]",
+        ),
+        ("objects: [{id: 0, name: a, family: elastic}]", "objects[0].id", "outside 1..65535"),
+        ("objects: [{id: 65536, name: a, family: elastic}]", "objects[0].id", "outside 1..65535"),
+        ("objects: [{id: '1', name: a, family: elastic}]", "objects[0].id", "expected an integer"),
+        ("objects: [{id: true, name: a, family: elastic}]", "objects[0].id", "expected an integer"),
+        ("objects: [{id: 1.0, name: a, family: elastic}]", "objects[0].id", "expected an integer"),
+        ("objects: [{id: 1, name: '', family: elastic}]", "objects[0].name", "non-empty string"),
+        ("objects: [{id: 1, name: a}]", "objects[0].family", "missing"),
+        ("objects: [{id: 1, name: a, family: sand, parms: {}}]", "objects[0].parms", "unknown key"),
+        (
+            "objects: [{id: 1, name: a, family: sand, params: {E: soft}}]",
+            "objects[0].params.E",
+            "finite number",
+        ),
+        (
+            "objects: [{id: 1, name: a, family: sand, params: [1]}]",
+            "objects[0].params",
+            "expected a mapping",
+        ),
+        ("objects: [7]", "objects[0]", "expected a mapping"),
+        ("objects: {id: 1}", "objects", "expected a list"),
+        ("gripper: {shape: sphere}", "gripper.radius", "positive number"),
+        ("gripper: {shape: sphere, radius: -0.01}", "gripper.radius", "positive number"),
+        ("gripper: {radius: 0.01}", "gripper.shape", "non-empty string"),
+        ("version: 2", "version", "unsupported schema version 2"),
+    ],
+)
+def test_invalid_declaration_raises_scene_error_naming_the_field(text, field, problem):
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="test")
+    assert info.value.field == field
+    assert problem in info.value.problem
+    assert str(info.value).startswith(f"test: {field}: ")
+
+
+@pytest.mark.parametrize("text", ["- a\n- b\n", "objects: [\n", "just words"])
+def test_text_that_is_not_a_yaml_mapping_raises_scene_error(text):
+    with pytest.raises(SceneError, match="<string>"):
+        parse_scene(text)
+
+
+def test_object_by_id_finds_declared_objects_and_rejects_others():
+    scene = parse_scene(EXAMPLE)
+    assert scene.object_by_id(2).name == "clay"
+    with pytest.raises(SceneError, match=r"no object with id 5 \(declared ids: \[1, 2\]\)"):
+        scene.object_by_id(5)
+
+
+def test_building_a_scene_in_code_is_validated_too():
+    with pytest.raises(SceneError, match="objects\\[0\\].family"):
+        Scene(objects=[SceneObject(1, "a", "rubber")])
+
+
+def test_load_scene_reads_a_file_inline_text_and_a_bag(tmp_path, small_bag, small_recording):
+    path = tmp_path / "scene.yaml"
+    path.write_text(EXAMPLE)
+    assert load_scene(path) == load_scene(str(path)) == parse_scene(EXAMPLE)
+    assert load_scene(EXAMPLE) == parse_scene(EXAMPLE)
+    assert load_scene(small_bag) == small_recording.scene
+    assert load_scene(str(small_bag)).ids == [1, 2, 3]
+
+
+def test_load_scene_of_a_bag_without_declaration_is_empty(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9}\n")
+    assert load_scene(bag) == Scene()
+
+
+def test_load_scene_of_a_missing_file_raises_scene_error_naming_it(tmp_path):
+    with pytest.raises(SceneError, match="no_such.yaml: cannot read scene file"):
+        load_scene(str(tmp_path / "no_such.yaml"))
+
+
+def test_load_scene_of_a_directory_that_is_no_bag_raises_bag_error(tmp_path):
+    with pytest.raises(BagError, match="no metadata.yaml"):
+        load_scene(tmp_path)
+
+
+def test_errors_survive_pickling_for_the_process_runner(tmp_path):
+    scene_error = SceneError("objects[0].id", "missing", "x.yaml")
+    bag_error = BagError(tmp_path, "/cam0/instance_mask", "bad")
+    for error in (scene_error, bag_error):
+        copy = pickle.loads(pickle.dumps(error))
+        assert type(copy) is type(error) and str(copy) == str(error)
+    assert SCENE_KEY == "mosiv.scene"
