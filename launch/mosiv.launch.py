@@ -12,12 +12,11 @@ same parameters where `launch` is not installed.
 import os
 
 from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.conditions import IfCondition
 from launch.substitutions import LaunchConfiguration, PythonExpression
 from launch_ros.actions import Node
-
-from launch import LaunchDescription
 
 PIPELINE = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
 
