@@ -1,0 +1,275 @@
+"""Effects: physical terms with their own parameters, plugged into every simulation substep.
+
+The extension point. An ``Effect`` subclass declares its parameters (``ParamSpec``; stored in the
+simulator's ``Parameters`` as ``<effect name>.<param>`` and fitted with the same gradients as
+the material parameters) and implements one or both hooks:
+
+- ``accelerate(grid, values)``: runs after particle-to-grid, before the grid update. It adds
+  accelerations (m/s^2) to ``grid.a``, one vec3 per (batch, object, node), from the grid mass and
+  momentum (read-only). The grid update then integrates ``v = p / m + dt a``.
+- ``stress(particles, values)``: runs before particle-to-grid. It adds a Kirchhoff stress (Pa) to
+  ``particles.tau``, one mat33 per particle, from the particle state (read-only); P2G scatters
+  it with the material stress.
+
+Both hooks must only *add*, with ``wp.atomic_add``: an in-place ``a[i] = a[i] + ...`` would
+give wrong adjoints on the tape. ``values`` maps the effect's own parameter names to their
+arrays. Built-in effects: gravity, a uniform body force (wind), linear and quadratic air drag, and
+Kelvin-Voigt damping. Ground friction and a tilted floor are the ground's parameters
+(``ground.friction``, ``ground.normal``; see ``boundaries``).
+
+What it is not for: boundary conditions that project velocities (ground, walls, colliders:
+``boundaries`` and the grid update in ``kernels``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+import warp as wp
+
+from mosiv_ros.sim.errors import ParameterError
+from mosiv_ros.sim.params import ParamSpec
+
+
+@dataclass
+class GridView:
+    """What an ``accelerate`` hook sees: the grid of one substep (index (b * K + k) * G + node)."""
+
+    m: wp.array  # float, mass
+    p: wp.array  # vec3, momentum
+    a: wp.array  # vec3, accelerations to add to
+    n_batch: int
+    n_objects: int
+    n_nodes: int
+    dims: tuple[int, int, int]
+    lo: np.ndarray
+    dx: float
+    dt: float
+    device: str
+
+
+@dataclass
+class ParticleView:
+    """What a ``stress`` hook sees: the particle state of one substep (index b * N + p)."""
+
+    x: wp.array  # vec3
+    v: wp.array  # vec3
+    C: wp.array  # mat33, affine velocity field (velocity gradient)
+    b: wp.array  # mat33, elastic left Cauchy-Green tensor
+    obj: wp.array  # int, object index 0..K-1 of particle p (length N)
+    tau: wp.array  # mat33, stresses to add to
+    n_batch: int
+    n_particles: int
+    n_objects: int
+    dt: float
+    device: str
+
+
+class Effect:
+    """Base class of effects. Subclasses set ``name`` and ``params`` and override a hook.
+
+    ``Effect(**initial)`` sets initial values of the effect's parameters by their short names.
+    """
+
+    name: ClassVar[str] = ""
+    params: ClassVar[tuple[ParamSpec, ...]] = ()
+    doc: ClassVar[str] = ""
+
+    def __init__(self, **initial: object) -> None:
+        known = {spec.name for spec in self.params}
+        unknown = sorted(set(initial) - known)
+        if unknown:
+            raise ParameterError(
+                f"effect {self.name!r}: unknown parameter(s) {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(known))}"
+            )
+        self.initial = dict(initial)
+
+    def specs(self) -> list[ParamSpec]:
+        """The parameters with their full names ``<effect>.<param>``."""
+        return [
+            ParamSpec(f"{self.name}.{s.name}", s.default, s.lower, s.upper, s.unit, s.doc,
+                      s.per_object, s.size, s.families)
+            for s in self.params
+        ]
+
+    @property
+    def has_accelerate(self) -> bool:
+        return type(self).accelerate is not Effect.accelerate
+
+    @property
+    def has_stress(self) -> bool:
+        return type(self).stress is not Effect.stress
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        """Add accelerations to ``grid.a`` (override to use)."""
+
+    def stress(self, particles: ParticleView, values: dict[str, wp.array]) -> None:
+        """Add Kirchhoff stresses to ``particles.tau`` (override to use)."""
+
+    def time_step_limit(self, values: dict[str, np.ndarray], dx: float, density: float) -> float:
+        """Largest stable substep (s) with these parameter values (numpy, by short name)."""
+        return math.inf
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({', '.join(f'{k}={v!r}' for k, v in self.initial.items())})"
+
+
+# --- kernels ------------------------------------------------------------------------------------
+
+
+@wp.func
+def batch_vec3(values: wp.array(dtype=float), b: int):
+    return wp.vec3(values[3 * b], values[3 * b + 1], values[3 * b + 2])
+
+
+@wp.kernel
+def uniform_acceleration_kernel(
+    values: wp.array(dtype=float), per_batch: int, a: wp.array(dtype=wp.vec3)
+):
+    """A += g(b) everywhere; ``per_batch`` = K * G nodes share one batch's vector."""
+    i = wp.tid()
+    wp.atomic_add(a, i, batch_vec3(values, i // per_batch))
+
+
+@wp.kernel
+def drag_kernel(
+    m: wp.array(dtype=float),
+    p: wp.array(dtype=wp.vec3),
+    coefficient: wp.array(dtype=float),
+    n_nodes: int,
+    quadratic: int,
+    a: wp.array(dtype=wp.vec3),
+):
+    """A -= c v (linear, 1/s) or a -= c |v| v (quadratic, 1/m), c per (batch, object)."""
+    i = wp.tid()
+    mass = m[i]
+    if mass > 0.0:
+        v = p[i] / mass
+        c = coefficient[i // n_nodes]
+        if quadratic != 0:
+            c = c * wp.length(v)
+        wp.atomic_add(a, i, -c * v)
+
+
+@wp.kernel
+def kelvin_voigt_kernel(
+    C: wp.array(dtype=wp.mat33),
+    b: wp.array(dtype=wp.mat33),
+    obj: wp.array(dtype=int),
+    viscosity: wp.array(dtype=float),
+    n_particles: int,
+    n_objects: int,
+    tau: wp.array(dtype=wp.mat33),
+):
+    """Tau += J eta_d (C + C^T): a dashpot in parallel with the material (Kelvin-Voigt)."""
+    i = wp.tid()
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    J = wp.sqrt(wp.determinant(b[i]))
+    eta = viscosity[batch * n_objects + k]
+    wp.atomic_add(tau, i, (C[i] + wp.transpose(C[i])) * (J * eta))
+
+
+# --- built-in effects ---------------------------------------------------------------------------
+
+
+class Gravity(Effect):
+    """Uniform gravitational acceleration; a tilted gravity is a different vector."""
+
+    name = "gravity"
+    params = (ParamSpec("g", (0.0, 0.0, -9.81), -100.0, 100.0, "m/s^2", "gravity vector", size=3),)
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        _uniform(grid, values["g"])
+
+
+class BodyForce(Effect):
+    """A uniform body force per unit mass on every object (e.g. a steady wind), m/s^2."""
+
+    name = "wind"
+    params = (ParamSpec("a", (0.0, 0.0, 0.0), -100.0, 100.0, "m/s^2",
+                        "body acceleration vector", size=3),)
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        _uniform(grid, values["a"])
+
+
+class LinearDrag(Effect):
+    """Linear (Stokes-like) air drag a = -c v, a coefficient per object, 1/s."""
+
+    name = "linear_drag"
+    params = (ParamSpec("coefficient", 0.0, 0.0, 1.0e3, "1/s", "linear drag rate", per_object=True),)
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        _drag(grid, values["coefficient"], quadratic=False)
+
+    def time_step_limit(self, values: dict[str, np.ndarray], dx: float, density: float) -> float:
+        rate = float(np.max(values["coefficient"]))
+        return 0.5 / rate if rate > 0 else math.inf
+
+
+class QuadraticDrag(Effect):
+    """Quadratic air drag a = -c |v| v, c = rho_air C_d A / (2 m) per object, 1/m."""
+
+    name = "drag"
+    params = (ParamSpec("coefficient", 0.0, 0.0, 1.0e3, "1/m", "quadratic drag coefficient",
+                        per_object=True),)
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        _drag(grid, values["coefficient"], quadratic=True)
+
+
+class KelvinVoigtDamping(Effect):
+    """Internal velocity damping: a viscous stress J eta_d (C + C^T) per object, Pa*s.
+
+    Damps deformation rates (vibration, bouncing) without slowing rigid motion, unlike drag.
+    """
+
+    name = "damping"
+    params = (ParamSpec("viscosity", 0.0, 0.0, 1.0e5, "Pa*s", "Kelvin-Voigt damping viscosity",
+                        per_object=True),)
+
+    def stress(self, particles: ParticleView, values: dict[str, wp.array]) -> None:
+        wp.launch(
+            kelvin_voigt_kernel,
+            dim=particles.n_batch * particles.n_particles,
+            inputs=[particles.C, particles.b, particles.obj, values["viscosity"],
+                    particles.n_particles, particles.n_objects],
+            outputs=[particles.tau],
+            device=particles.device,
+        )
+
+    def time_step_limit(self, values: dict[str, np.ndarray], dx: float, density: float) -> float:
+        # explicit viscous diffusion, as for a fluid: eta dt / (rho dx^2) <= 1 / 6
+        eta = float(np.max(values["viscosity"]))
+        return density * dx * dx / (6.0 * eta) if eta > 0 else math.inf
+
+
+def _uniform(grid: GridView, vector: wp.array) -> None:
+    wp.launch(
+        uniform_acceleration_kernel,
+        dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+        inputs=[vector, grid.n_objects * grid.n_nodes],
+        outputs=[grid.a],
+        device=grid.device,
+    )
+
+
+def _drag(grid: GridView, coefficient: wp.array, quadratic: bool) -> None:
+    wp.launch(
+        drag_kernel,
+        dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+        inputs=[grid.m, grid.p, coefficient, grid.n_nodes, int(quadratic)],
+        outputs=[grid.a],
+        device=grid.device,
+    )
+
+
+BUILTIN_EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls for cls in (Gravity, BodyForce, LinearDrag, QuadraticDrag, KelvinVoigtDamping)
+}
+"""Effects by name, for configuration files."""

@@ -1,0 +1,420 @@
+"""The MLS-MPM substep as Warp kernels, one per phase: P2G, grid update, G2P; and a state check.
+
+Moving least squares MPM (Hu et al. 2018, "A moving least squares material point method",
+Sec. 4 and Algorithm 1) with quadratic B-spline weights (Stomakhin et al. 2013 / mpm.graphics
+Eq. 123) and APIC affine velocity fields C (Jiang et al. 2015). Layouts:
+
+- particles: index b * N + p for batch b and particle p; ``obj[p]`` is the object index 0..K-1;
+- grid: one field per object (multi-field MPM), index (b * K + k) * G + node, with
+  node = (i * ny + j) * nz + l on a dense nx * ny * nz grid of spacing dx whose node (0, 0, 0) is
+  at ``lo``.
+
+**Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
+contact algorithm for the material point method"; Huang et al. 2011): each object scatters to its
+own field, so objects do not stick together as on a single grid. At a node where two or more
+fields have mass, every field k is compared with the centre-of-mass velocity v_cm of all fields.
+As in Bardenhagen et al., one body's normal serves the pair: the unit mass gradient (central
+differences of the grid mass) of the present field of the largest object, so that a small
+object's corners sliding on a large one do not tilt the normal (a corner's gradient would read
+tangential sliding as approach and lift the small object). n_k points from k into that object
+(out of it, for the object itself). When k approaches the others, dn = (v_k - v_cm) . n_k > 0, its
+normal relative velocity is removed and its tangential relative velocity t shrinks by
+mu * dn (Coulomb), or vanishes (stick) when |t| <= mu * dn; otherwise k separates freely. The
+friction coefficient is the mass-weighted mean over the other fields of the pair rule
+mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two objects the two
+corrections are equal and opposite, so momentum is conserved.
+
+Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
+accumulations are ``wp.atomic_add``. Loops over objects are unrolled to ``MAX_OBJECTS`` so that
+no dynamic loop carries state (which Warp's adjoint does not support).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from mosiv_ros.sim.boundaries import WALL_CELLS
+from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
+
+MAX_OBJECTS = 8
+MAX_OBJECTS_W = wp.constant(MAX_OBJECTS)
+MAX_COLLIDERS = 2
+MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
+WALL = wp.constant(WALL_CELLS)
+CONTACT_MASS_FRACTION = wp.constant(1.0e-5)
+
+
+@wp.func
+def node_index(i: int, j: int, l: int, dims: wp.vec3i):
+    return (i * dims[1] + j) * dims[2] + l
+
+
+@wp.func
+def stencil_base(x: wp.vec3, lo: wp.vec3, inv_dx: float, dims: wp.vec3i):
+    """Lower corner of the 3x3x3 quadratic stencil, clamped inside the grid."""
+    X = (x - lo) * inv_dx
+    return wp.vec3i(
+        wp.clamp(int(wp.floor(X[0] - 0.5)), 0, dims[0] - 3),
+        wp.clamp(int(wp.floor(X[1] - 0.5)), 0, dims[1] - 3),
+        wp.clamp(int(wp.floor(X[2] - 0.5)), 0, dims[2] - 3),
+    )
+
+
+@wp.func
+def bspline_weights(fx: float):
+    """Quadratic B-spline weights at offsets 0, 1, 2 for fractional position fx in [0.5, 1.5)."""
+    return wp.vec3(
+        0.5 * (1.5 - fx) * (1.5 - fx),
+        0.75 - (fx - 1.0) * (fx - 1.0),
+        0.5 * (fx - 0.5) * (fx - 0.5),
+    )
+
+
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    b: wp.array(dtype=wp.mat33),
+    volume: wp.array(dtype=float),
+    tau_extra: wp.array(dtype=wp.mat33),
+    obj: wp.array(dtype=int),
+    family: wp.array(dtype=int),
+    E: wp.array(dtype=float),
+    nu: wp.array(dtype=float),
+    yield_stress: wp.array(dtype=float),
+    friction_angle: wp.array(dtype=float),
+    bulk_modulus: wp.array(dtype=float),
+    viscosity: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    n_particles: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    dt: float,
+    b_out: wp.array(dtype=wp.mat33),
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+):
+    """Deformation update, return mapping, stress, and scatter of mass and momentum."""
+    i = wp.tid()
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    q = batch * n_objects + k
+    fam = family[k]
+    # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
+    f = wp.identity(n=3, dtype=float) + C[i] * dt
+    b_trial = f * b[i] * wp.transpose(f)
+    b_new = return_mapping(fam, b_trial, E[q], nu[q], yield_stress[q], friction_angle[q])
+    b_out[i] = b_new
+    tau = kirchhoff_stress(fam, b_new, C[i], E[q], nu[q], bulk_modulus[q], viscosity[q])
+    if tau_extra.shape[0] > 0:
+        tau = tau + tau_extra[i]
+    inv_dx = 1.0 / dx
+    vol = volume[i]
+    mass = density[q] * vol
+    # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
+    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C[i] * mass
+    base = stencil_base(x[i], lo, inv_dx, dims)
+    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    wx = bspline_weights(fx[0])
+    wy = bspline_weights(fx[1])
+    wz = bspline_weights(fx[2])
+    offset = q * n_nodes
+    momentum = v[i] * mass
+    for a in range(3):
+        for c in range(3):
+            for e in range(3):
+                weight = wx[a] * wy[c] * wz[e]
+                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
+                node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                wp.atomic_add(grid_m, node, weight * mass)
+                wp.atomic_add(grid_p, node, weight * (momentum + affine * dpos))
+
+
+@wp.func
+def field_velocity(
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    index: int,
+    dt: float,
+):
+    """Grid velocity of one field at one node after the effects' accelerations: p/m + dt a."""
+    m = grid_m[index]
+    vel = wp.vec3(0.0)
+    if m > 0.0:
+        vel = grid_p[index] / m + grid_a[index] * dt
+    return vel
+
+
+@wp.func
+def mass_gradient(grid_m: wp.array(dtype=float), offset: int, i: int, j: int, l: int,
+                  dims: wp.vec3i, inv_dx: float):
+    """Central-difference gradient of one field's grid mass (one-sided at the domain faces)."""
+    i0 = wp.max(i - 1, 0)
+    i1 = wp.min(i + 1, dims[0] - 1)
+    j0 = wp.max(j - 1, 0)
+    j1 = wp.min(j + 1, dims[1] - 1)
+    l0 = wp.max(l - 1, 0)
+    l1 = wp.min(l + 1, dims[2] - 1)
+    gx = (grid_m[offset + node_index(i1, j, l, dims)] - grid_m[offset + node_index(i0, j, l, dims)]) / float(i1 - i0)
+    gy = (grid_m[offset + node_index(i, j1, l, dims)] - grid_m[offset + node_index(i, j0, l, dims)]) / float(j1 - j0)
+    gz = (grid_m[offset + node_index(i, j, l1, dims)] - grid_m[offset + node_index(i, j, l0, dims)]) / float(l1 - l0)
+    return wp.vec3(gx, gy, gz) * inv_dx
+
+
+@wp.func
+def coulomb(v_rel: wp.vec3, n: wp.vec3, friction: float):
+    """Coulomb projection of a relative velocity moving into a surface of outward normal n.
+
+    Returns v_rel unchanged when separating (v_rel . n >= 0); otherwise removes the normal part
+    and shrinks the tangential part by friction * |normal part|, to zero if that is larger.
+    """
+    vn = wp.dot(v_rel, n)
+    result = v_rel
+    if vn < 0.0:
+        vt = v_rel - n * vn
+        t = wp.length(vt)
+        remaining = t + wp.max(friction, 0.0) * vn  # <= t; > 0 only if t > 0
+        if remaining <= 0.0:
+            result = wp.vec3(0.0)
+        else:
+            result = vt * (remaining / t)
+    return result
+
+
+@wp.func
+def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
+    """Signed distance (x) and outward unit normal (yzw) of a collider in its own frame."""
+    d = float(0.0)
+    n = wp.vec3(0.0, 0.0, 1.0)
+    if shape == 0:  # sphere of radius size[0]
+        r = wp.length(p)
+        d = r - size[0]
+        if r > 0.0:
+            n = p / r
+    elif shape == 1:  # box of half extents size
+        qx = wp.abs(p[0]) - size[0]
+        qy = wp.abs(p[1]) - size[1]
+        qz = wp.abs(p[2]) - size[2]
+        outside = wp.vec3(wp.max(qx, 0.0), wp.max(qy, 0.0), wp.max(qz, 0.0))
+        lo = wp.length(outside)
+        inside = wp.min(wp.max(qx, wp.max(qy, qz)), 0.0)
+        d = lo + inside
+        if lo > 0.0:
+            n = wp.vec3(wp.sign(p[0]) * outside[0], wp.sign(p[1]) * outside[1],
+                        wp.sign(p[2]) * outside[2]) / lo
+        elif qx >= qy and qx >= qz:
+            n = wp.vec3(wp.sign(p[0]), 0.0, 0.0)
+        elif qy >= qz:
+            n = wp.vec3(0.0, wp.sign(p[1]), 0.0)
+        else:
+            n = wp.vec3(0.0, 0.0, wp.sign(p[2]))
+    else:  # capsule: radius size[0], half length size[1] along z
+        axis_point = wp.vec3(0.0, 0.0, wp.clamp(p[2], -size[1], size[1]))
+        r = wp.length(p - axis_point)
+        d = r - size[0]
+        if r > 0.0:
+            n = (p - axis_point) / r
+    return wp.vec4(d, n[0], n[1], n[2])
+
+
+@wp.kernel
+def grid_update(
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    friction: wp.array(dtype=float),
+    normal_rank: wp.array(dtype=int),
+    ground_height: wp.array(dtype=float),
+    ground_normal: wp.array(dtype=float),
+    ground_friction: wp.array(dtype=float),
+    has_ground: int,
+    collider_shape: wp.array(dtype=int),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_friction: wp.array(dtype=float),
+    collider_pos: wp.array(dtype=wp.vec3),
+    collider_rot: wp.array(dtype=wp.quat),
+    collider_vel: wp.array(dtype=wp.vec3),
+    collider_omega: wp.array(dtype=wp.vec3),
+    collider_row: int,
+    n_colliders: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    dt: float,
+    grid_v: wp.array(dtype=wp.vec3),
+):
+    """Velocities of every field at one node: effects, object contact, ground, walls, colliders."""
+    tid = wp.tid()
+    batch = tid // n_nodes
+    node = tid - batch * n_nodes
+    i = node // (dims[1] * dims[2])
+    j = (node // dims[2]) % dims[1]
+    l = node % dims[2]
+    inv_dx = 1.0 / dx
+    x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
+
+    # Pass 1: totals over the fields present at this node (for contact). A field is present
+    # when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far fringe of an
+    # object's kernel support takes no part in contact. The contact normal comes from the
+    # present field of highest ``normal_rank`` (the larger object).
+    m_all = float(0.0)
+    for k in range(MAX_OBJECTS_W):
+        if k < n_objects:
+            m_all += grid_m[(batch * n_objects + k) * n_nodes + node]
+    m_present = m_all * CONTACT_MASS_FRACTION
+    m_total = float(0.0)
+    p_total = wp.vec3(0.0)
+    mu_mass = float(0.0)
+    present = int(0)
+    lead = int(0)
+    lead_rank = int(-1)
+    for k in range(MAX_OBJECTS_W):
+        if k < n_objects:
+            index = (batch * n_objects + k) * n_nodes + node
+            m = grid_m[index]
+            if m > m_present:
+                present += 1
+                m_total += m
+                p_total += field_velocity(grid_m, grid_p, grid_a, index, dt) * m
+                mu_mass += friction[batch * n_objects + k] * m
+                if normal_rank[k] > lead_rank:
+                    lead_rank = normal_rank[k]
+                    lead = k
+    n_lead = wp.vec3(0.0)
+    if present > 1:
+        g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims, inv_dx)
+        g_len = wp.length(g_lead)
+        if g_len > 0.0:
+            n_lead = g_lead / g_len  # points into the lead object
+
+    # Ground plane and collider poses shared by all fields.
+    n_ground = wp.vec3(0.0, 0.0, 1.0)
+    phi_ground = float(1.0)
+    if has_ground != 0:
+        n_raw = wp.vec3(ground_normal[3 * batch], ground_normal[3 * batch + 1],
+                        ground_normal[3 * batch + 2])
+        n_ground = wp.normalize(n_raw)
+        phi_ground = wp.dot(n_ground, x_node) - ground_height[batch]
+
+    # Pass 2: each field's velocity.
+    for k in range(MAX_OBJECTS_W):
+        if k < n_objects:
+            index = (batch * n_objects + k) * n_nodes + node
+            m = grid_m[index]
+            vel = field_velocity(grid_m, grid_p, grid_a, index, dt)
+            if present > 1 and m > m_present and wp.length(n_lead) > 0.0:
+                mu_k = friction[batch * n_objects + k]
+                mu_pair = 0.5 * (mu_k + (mu_mass - mu_k * m) / (m_total - m))
+                # outward normal of field k towards the others: into the lead object, or out of
+                # it when k is the lead
+                n = n_lead
+                if k == lead:
+                    n = -n_lead
+                v_cm = p_total / m_total
+                rel = vel - v_cm
+                if wp.dot(rel, n) > 0.0:
+                    # approaching: the others are a surface of outward normal -n
+                    vel = v_cm + coulomb(rel, -n, mu_pair)
+            if has_ground != 0 and phi_ground < 0.0:
+                vel = coulomb(vel, n_ground, ground_friction[batch])
+            for c in range(MAX_COLLIDERS_W):
+                if c < n_colliders:
+                    row = collider_row * n_colliders + c
+                    r = x_node - collider_pos[row]
+                    local = wp.quat_rotate_inv(collider_rot[row], r)
+                    sd = collider_sdf(collider_shape[c], collider_size[c], local)
+                    if sd[0] < 0.0:
+                        normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
+                        v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
+                        vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+            # slip walls: no velocity into a domain face within WALL nodes of it
+            vx = vel[0]
+            vy = vel[1]
+            vz = vel[2]
+            if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
+                vx = 0.0
+            if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
+                vy = 0.0
+            if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
+                vz = 0.0
+            grid_v[index] = wp.vec3(vx, vy, vz)
+
+
+@wp.kernel
+def g2p(
+    x: wp.array(dtype=wp.vec3),
+    grid_v: wp.array(dtype=wp.vec3),
+    obj: wp.array(dtype=int),
+    n_particles: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    dt: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+):
+    """Gather velocity and affine field from the particle's own object field; advect."""
+    i = wp.tid()
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    inv_dx = 1.0 / dx
+    base = stencil_base(x[i], lo, inv_dx, dims)
+    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    wx = bspline_weights(fx[0])
+    wy = bspline_weights(fx[1])
+    wz = bspline_weights(fx[2])
+    offset = (batch * n_objects + k) * n_nodes
+    new_v = wp.vec3(0.0)
+    new_C = wp.mat33(0.0)
+    for a in range(3):
+        for c in range(3):
+            for e in range(3):
+                weight = wx[a] * wy[c] * wz[e]
+                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
+                g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
+                new_v += g_v * weight
+                # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
+                new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
+    v_out[i] = new_v
+    C_out[i] = new_C
+    x_out[i] = x[i] + new_v * dt
+
+
+@wp.kernel
+def check_state(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    b: wp.array(dtype=wp.mat33),
+    obj: wp.array(dtype=int),
+    n_particles: int,
+    n_objects: int,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    stats: wp.array(dtype=float),
+):
+    """Per (batch, object): [max speed, non-finite count, outside-domain count, min det b]."""
+    i = wp.tid()
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    row = 4 * (batch * n_objects + k)
+    speed = wp.length(v[i])
+    det = wp.determinant(b[i])
+    finite = wp.isfinite(x[i]) and wp.isfinite(v[i]) and wp.isfinite(det)
+    if finite:
+        wp.atomic_max(stats, row, speed)
+        wp.atomic_min(stats, row + 3, det)
+        p = x[i]
+        if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
+            wp.atomic_add(stats, row + 2, 1.0)
+    else:
+        wp.atomic_add(stats, row + 1, 1.0)

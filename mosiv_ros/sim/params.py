@@ -1,0 +1,176 @@
+"""Named, batched, differentiable simulation parameters.
+
+Every continuous quantity the simulator can fit lives here under one name: material parameters
+per object (``E``, ``nu``, ...), boundary parameters (``ground.friction``) and effect parameters
+(``drag.coefficient``). Each is a flat float32 Warp array with gradients, laid out as
+``[batch][object][component]`` (the object axis only for per-object parameters, the component
+axis only for vectors), so that kernels index it directly and a rollout of B parameter sets
+reads row ``b``.
+
+What it is for: storing, broadcasting, validating and reading back values and gradients.
+What it is not for: the physics that uses them (``materials``, ``effects``, ``kernels``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from mosiv_ros.sim.errors import ParameterError
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: its name, default, valid closed range, unit and layout.
+
+    ``families`` restricts a per-object material parameter to the families that use it; range
+    checks skip objects of other families (a fluid has no Young's modulus to check).
+    """
+
+    name: str
+    default: float | tuple[float, ...]
+    lower: float
+    upper: float
+    unit: str
+    doc: str
+    per_object: bool = False
+    size: int = 1
+    families: tuple[str, ...] = ()
+
+    def default_vector(self) -> np.ndarray:
+        value = np.atleast_1d(np.asarray(self.default, dtype=np.float64))
+        if value.size != self.size:
+            raise ValueError(f"{self.name}: default has {value.size} components, not {self.size}")
+        return value
+
+
+class Parameters:
+    """Values and gradients of a set of ``ParamSpec`` for B batches and K objects.
+
+    ``families`` gives each object's material family and ``object_names`` its name, both used
+    in error messages and to skip range checks of parameters an object's family does not use.
+    """
+
+    def __init__(
+        self,
+        specs: Iterable[ParamSpec],
+        n_batch: int,
+        object_names: Sequence[str],
+        families: Sequence[str],
+        device: str,
+    ) -> None:
+        self.specs = {spec.name: spec for spec in specs}
+        self.n_batch = int(n_batch)
+        self.object_names = list(object_names)
+        self.families = list(families)
+        self.device = device
+        self.arrays: dict[str, wp.array] = {}
+        for spec in self.specs.values():
+            values = np.broadcast_to(spec.default_vector(), self._shape(spec))
+            self.arrays[spec.name] = wp.array(
+                np.ascontiguousarray(values, dtype=np.float32).ravel(),
+                dtype=float,
+                device=device,
+                requires_grad=True,
+            )
+
+    @property
+    def n_objects(self) -> int:
+        return len(self.object_names)
+
+    def _shape(self, spec: ParamSpec) -> tuple[int, ...]:
+        shape: tuple[int, ...] = (self.n_batch,)
+        if spec.per_object:
+            shape += (self.n_objects,)
+        if spec.size > 1:
+            shape += (spec.size,)
+        return shape
+
+    def spec(self, name: str) -> ParamSpec:
+        try:
+            return self.specs[name]
+        except KeyError:
+            raise ParameterError(
+                f"unknown parameter {name!r}; known: {', '.join(sorted(self.specs))}"
+            ) from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.specs
+
+    def __getitem__(self, name: str) -> wp.array:
+        self.spec(name)
+        return self.arrays[name]
+
+    def shape(self, name: str) -> tuple[int, ...]:
+        """Shape of ``get(name)``: (B,), (B, K), (B, 3) or (B, K, 3)."""
+        return self._shape(self.spec(name))
+
+    def set(self, name: str, value: object) -> None:
+        """Set a parameter, broadcasting ``value`` to its (B[, K][, 3]) shape.
+
+        A per-object parameter also accepts a mapping from object name to value. Values are
+        range-checked for every object whose family uses the parameter.
+        """
+        spec = self.spec(name)
+        shape = self._shape(spec)
+        if isinstance(value, dict):
+            if not spec.per_object:
+                raise ParameterError(f"{name}: a mapping by object name needs a per-object parameter")
+            current = self.get(name)
+            for obj_name, obj_value in value.items():
+                if obj_name not in self.object_names:
+                    raise ParameterError(
+                        f"{name}: unknown object {obj_name!r}; objects: {', '.join(self.object_names)}"
+                    )
+                current[:, self.object_names.index(obj_name)] = obj_value
+            array = current
+        else:
+            try:
+                array = np.broadcast_to(np.asarray(value, dtype=np.float64), shape)
+            except ValueError:
+                raise ParameterError(
+                    f"{name}: cannot broadcast a value of shape {np.shape(value)} to {shape} "
+                    f"(batch{', object' if spec.per_object else ''}"
+                    f"{', component' if spec.size > 1 else ''})"
+                ) from None
+        self._check(spec, array)
+        self.arrays[name].assign(np.ascontiguousarray(array, dtype=np.float32).ravel())
+
+    def update(self, values: dict[str, object]) -> None:
+        for name, value in values.items():
+            self.set(name, value)
+
+    def get(self, name: str) -> np.ndarray:
+        """Current values as float64, shaped as ``shape(name)``."""
+        return self.arrays[name].numpy().astype(np.float64).reshape(self.shape(name))
+
+    def grad(self, name: str) -> np.ndarray:
+        """Accumulated gradient, shaped as ``shape(name)``."""
+        return self.arrays[name].grad.numpy().astype(np.float64).reshape(self.shape(name))
+
+    def zero_grad(self) -> None:
+        for array in self.arrays.values():
+            array.grad.zero_()
+
+    def validate(self) -> None:
+        """Range-check every parameter (after values were written to the arrays directly)."""
+        for spec in self.specs.values():
+            self._check(spec, self.get(spec.name))
+
+    def _check(self, spec: ParamSpec, values: np.ndarray) -> None:
+        for index in np.ndindex(values.shape):
+            value = float(values[index])
+            obj = index[1] if spec.per_object else None
+            if obj is not None and spec.families and self.families[obj] not in spec.families:
+                continue
+            if not (np.isfinite(value) and spec.lower <= value <= spec.upper):
+                where = f"object {self.object_names[obj]!r} ({self.families[obj]})" if obj is not None else ""
+                batch = f"parameter set {index[0]}" if self.n_batch > 1 else ""
+                context = ", ".join(s for s in (where, batch) if s)
+                raise ParameterError(
+                    f"{spec.name}{f' of {context}' if context else ''} = {value:g} {spec.unit} is out "
+                    f"of range [{spec.lower:g}, {spec.upper:g}] {spec.unit} ({spec.doc})"
+                )

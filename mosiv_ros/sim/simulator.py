@@ -1,0 +1,592 @@
+"""The differentiable multi-object MLS-MPM simulator: set-up, rollouts, gradients.
+
+A ``Simulator`` holds one scene (objects, their particles, boundaries, effects) and B parameter
+sets of it (a leading batch axis: every kernel runs all B at once). ``rollout`` advances whole
+frames and returns particle positions per frame; with ``grad=True`` it keeps one checkpoint of the
+particle state per frame, and ``backward`` then takes dL/dx at every frame and returns dL/d(every
+parameter), dL/d(initial velocities) and dL/d(particle volumes). The backward pass recomputes
+one frame's substeps at a time on a ``wp.Tape`` from that frame's checkpoint, so memory grows
+with the number of frames, not substeps.
+
+Time step: ``n`` equal substeps per frame, the fewest that keep dt below the CFL bound
+``cfl * dx / (c + max_speed)`` (c the largest elastic or acoustic wave speed over objects and
+batches) and every effect's own bound. A frame whose particles turn non-finite, move faster
+than one grid cell per substep, invert, or leave the domain stops the run with a
+``SimulationDiverged`` naming the object, parameter set and frame.
+
+What it is not for: losses, optimisation or observations (``mosiv_ros.identify``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from mosiv_ros.sim import kernels
+from mosiv_ros.sim.boundaries import COLLIDER_SHAPES, GROUND_PARAMS, WALL_CELLS, Collider, Ground
+from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
+from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
+from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
+from mosiv_ros.sim.params import Parameters
+
+_LOG = logging.getLogger(__name__)
+
+
+def resolve_device(device: str) -> str:
+    """'auto' -> 'cuda:0' when a CUDA device is available, else 'cpu'; others unchanged."""
+    wp.init()
+    if device == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    if device.startswith("cuda") and wp.get_cuda_device_count() == 0:
+        raise ParameterError(f"device {device!r} requested but no CUDA device is available")
+    return device
+
+
+@dataclass
+class ObjectModel:
+    """One simulated object: name, material family and initial parameter values (SI units)."""
+
+    name: str
+    family: str
+    params: dict[str, float] = field(default_factory=dict)
+    id: int = 0
+
+
+@dataclass
+class Particles:
+    """Initial particles of a scene.
+
+    Positions (N, 3) m, volumes (N,) m^3, object index (N,) into the simulator's object list,
+    and optional initial velocities (N, 3) m/s (default zero).
+    """
+
+    x: np.ndarray
+    volume: np.ndarray
+    object_index: np.ndarray
+    v: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.x = np.asarray(self.x, dtype=np.float64).reshape(-1, 3)
+        n = len(self.x)
+        self.volume = np.broadcast_to(np.asarray(self.volume, dtype=np.float64), (n,)).copy()
+        self.object_index = np.asarray(self.object_index, dtype=np.int32).ravel()
+        self.v = (np.zeros((n, 3)) if self.v is None
+                  else np.asarray(self.v, dtype=np.float64).reshape(n, 3))
+        if len(self.object_index) != n:
+            raise ValueError(f"object_index has {len(self.object_index)} entries for {n} particles")
+        if not np.all(np.isfinite(self.x)) or not np.all(np.isfinite(self.v)):
+            raise ValueError("particle positions and velocities must be finite")
+        if np.any(self.volume <= 0):
+            raise ValueError("particle volumes must be positive")
+
+
+@dataclass
+class SimConfig:
+    """Grid, time stepping, boundaries and effects of a simulation.
+
+    The grid covers the box ``lo``..``hi`` (metres, world frame) with spacing ``dx``; particles
+    must start at least ``WALL_CELLS + 1`` cells inside it. ``max_speed`` is the material speed
+    (m/s) the CFL bound allows for on top of the wave speed.
+    """
+
+    dx: float
+    lo: Sequence[float]
+    hi: Sequence[float]
+    frame_dt: float = 1.0 / 30.0
+    cfl: float = 0.4
+    max_speed: float = 5.0
+    max_substeps: int = 10000
+    ground: Ground | None = field(default_factory=Ground)
+    colliders: list[Collider] = field(default_factory=list)
+    effects: list[Effect] = field(default_factory=lambda: [Gravity()])
+    device: str = "auto"
+
+
+def domain_around(points: np.ndarray, dx: float, margin: float = 0.1,
+                  floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A box around ``points`` with ``margin`` metres on every side plus the wall cells.
+
+    With ``floor`` (a ground height), the box reaches below it by the wall cells too.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pad = margin + (WALL_CELLS + 1) * dx
+    lo, hi = points.min(axis=0) - pad, points.max(axis=0) + pad
+    if floor is not None:
+        lo[2] = min(lo[2], floor - (WALL_CELLS + 1) * dx)
+    return lo, hi
+
+
+@dataclass
+class SimState:
+    """Particle state of every batch.
+
+    x, v (B, N, 3); C (affine velocity field) and b (elastic left Cauchy-Green tensor)
+    (B, N, 3, 3). ``SimState.rest(x, v)`` starts undeformed.
+    """
+
+    x: np.ndarray
+    v: np.ndarray
+    C: np.ndarray
+    b: np.ndarray
+
+    @classmethod
+    def rest(cls, x: np.ndarray, v: np.ndarray) -> SimState:
+        x = np.asarray(x, dtype=np.float64)
+        zero = np.zeros(x.shape[:-1] + (3, 3))
+        return cls(x=x, v=np.broadcast_to(v, x.shape).copy(), C=zero,
+                   b=zero + np.eye(3))
+
+
+@dataclass
+class Gradients:
+    """dL/d(...) from ``Simulator.backward``.
+
+    Per parameter name (shaped like the parameter), initial velocities (B, N, 3) and particle
+    volumes (B, N).
+    """
+
+    params: dict[str, np.ndarray]
+    v0: np.ndarray
+    volume: np.ndarray
+
+
+class _State:
+    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T)."""
+
+    def __init__(self, n: int, device: str, requires_grad: bool) -> None:
+        self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.v = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.C = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
+        self.b = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
+
+    @property
+    def arrays(self) -> tuple[wp.array, ...]:
+        return (self.x, self.v, self.C, self.b)
+
+    def copy_from(self, other: _State) -> None:
+        for dst, src in zip(self.arrays, other.arrays, strict=True):
+            wp.copy(dst, src)
+
+
+class _Grid:
+    """Grid arrays of one substep (all batches and object fields) and the effects' stress."""
+
+    def __init__(self, n_grid: int, n_particles: int, stress: bool, device: str,
+                 requires_grad: bool) -> None:
+        self.m = wp.zeros(n_grid, dtype=float, device=device, requires_grad=requires_grad)
+        self.p = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.a = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.v = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
+        self.tau = wp.zeros(n_particles if stress else 0, dtype=wp.mat33, device=device,
+                            requires_grad=requires_grad)
+
+    @property
+    def arrays(self) -> tuple[wp.array, ...]:
+        return (self.m, self.p, self.a, self.v, self.tau)
+
+
+@wp.kernel
+def _init_state(x0: wp.array(dtype=wp.vec3), v0: wp.array(dtype=wp.vec3), n_particles: int,
+                x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+                C: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    x[i] = x0[i % n_particles]
+    v[i] = v0[i]
+    C[i] = wp.mat33(0.0)
+    b[i] = wp.identity(n=3, dtype=float)
+
+
+@wp.kernel
+def _add_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    out[i] = a[i] + b[i]
+
+
+class Simulator:
+    """One scene, B parameter sets; see the module docstring."""
+
+    def __init__(self, objects: Sequence[ObjectModel], particles: Particles, config: SimConfig,
+                 n_batch: int = 1) -> None:
+        self.objects = list(objects)
+        self.config = config
+        self.n_batch = int(n_batch)
+        self.device = resolve_device(config.device)
+        self._check_scene(particles)
+        self.n_particles = len(particles.x)
+        self.n_objects = len(self.objects)
+        self.dx = float(config.dx)
+        lo = np.asarray(config.lo, dtype=np.float64)
+        self.dims = tuple(int(n) for n in np.ceil((np.asarray(config.hi) - lo) / self.dx).astype(int) + 1)
+        self.lo = lo
+        self.hi = lo + (np.asarray(self.dims) - 1) * self.dx
+        self.n_nodes = int(np.prod(self.dims))
+        self._check_inside(particles)
+        self.effects = list(config.effects)
+        names = [e.name for e in self.effects]
+        if len(set(names)) != len(names):
+            raise ParameterError(f"effects must have distinct names, got {names}")
+
+        specs = list(MATERIAL_PARAMS) + list(GROUND_PARAMS)
+        for effect in self.effects:
+            specs += effect.specs()
+        families = [o.family for o in self.objects]
+        self.params = Parameters(specs, self.n_batch, [o.name for o in self.objects], families,
+                                 self.device)
+        for name in MATERIAL_PARAMS:
+            values = {o.name: o.params[name.name] for o in self.objects if name.name in o.params}
+            if values:
+                self.params.set(name.name, values)
+        if config.ground is not None:
+            self.params.update(config.ground.initial())
+        for effect in self.effects:
+            self.params.update({f"{effect.name}.{k}": v for k, v in effect.initial.items()})
+        self.params.validate()
+
+        d = self.device
+        self.obj = wp.array(particles.object_index, dtype=int, device=d)
+        self.family = wp.array([FAMILY_CODES[o.family] for o in self.objects], dtype=int, device=d)
+        # contact normals come from the larger object of a pair (kernels.grid_update)
+        sizes = [particles.volume[particles.object_index == k].sum() for k in range(self.n_objects)]
+        rank = np.empty(self.n_objects, dtype=np.int32)
+        rank[np.argsort(sizes, kind="stable")] = np.arange(self.n_objects)
+        self.normal_rank = wp.array(rank, dtype=int, device=d)
+        self.x0 = wp.array(particles.x.astype(np.float32), dtype=wp.vec3, device=d)
+        self.volume = wp.zeros(self.n_batch * self.n_particles, dtype=float, device=d,
+                               requires_grad=True)
+        self.v0 = wp.zeros(self.n_batch * self.n_particles, dtype=wp.vec3, device=d,
+                           requires_grad=True)
+        self.set_volume(particles.volume)
+        self.set_initial_velocity(particles.v)
+        self._setup_colliders()
+        self._stress = any(e.has_stress for e in self.effects)
+        self._record: dict | None = None
+        self._final: _State | None = None
+        self._tape_buffers: tuple[list[_State], list[_Grid]] | None = None
+
+    # --- set-up and checks ----------------------------------------------------------------
+
+    def _check_scene(self, particles: Particles) -> None:
+        if not self.objects:
+            raise ParameterError("a simulation needs at least one object")
+        if len(self.objects) > kernels.MAX_OBJECTS:
+            raise ParameterError(f"{len(self.objects)} objects: at most {kernels.MAX_OBJECTS} "
+                                 "can be simulated together")
+        names = [o.name for o in self.objects]
+        if len(set(names)) != len(names):
+            raise ParameterError(f"object names must be distinct, got {names}")
+        for o in self.objects:
+            if o.family not in FAMILY_CODES:
+                raise ParameterError(f"object {o.name!r}: unknown material family {o.family!r} "
+                                     f"(expected one of {', '.join(FAMILY_CODES)})")
+            unknown = sorted(set(o.params) - {s.name for s in MATERIAL_PARAMS})
+            if unknown:
+                raise ParameterError(f"object {o.name!r}: unknown parameter(s) {', '.join(unknown)}")
+        index = particles.object_index
+        if index.size and (index.min() < 0 or index.max() >= len(self.objects)):
+            raise ParameterError(f"particle object_index must lie in 0..{len(self.objects) - 1}, "
+                                 f"got {index.min()}..{index.max()}")
+        empty = [o.name for k, o in enumerate(self.objects) if not np.any(index == k)]
+        if empty:
+            raise ParameterError(f"objects without particles: {', '.join(empty)}")
+        if self.config.dx <= 0 or self.config.frame_dt <= 0 or not 0 < self.config.cfl <= 1:
+            raise ParameterError("dx and frame_dt must be positive and cfl in (0, 1]")
+        if len(self.config.colliders) > kernels.MAX_COLLIDERS:
+            raise ParameterError(f"at most {kernels.MAX_COLLIDERS} colliders, got "
+                                 f"{len(self.config.colliders)}")
+
+    def _check_inside(self, particles: Particles) -> None:
+        margin = (WALL_CELLS + 1) * self.dx
+        for k, o in enumerate(self.objects):
+            x = particles.x[particles.object_index == k]
+            if np.any(x < self.lo + margin) or np.any(x > self.hi - margin):
+                raise ParameterError(
+                    f"object {o.name!r}: particles span {x.min(axis=0).round(4).tolist()}.."
+                    f"{x.max(axis=0).round(4).tolist()} m, outside the simulation domain "
+                    f"{(self.lo + margin).round(4).tolist()}..{(self.hi - margin).round(4).tolist()}"
+                    f" m (the grid minus {WALL_CELLS + 1} wall cells); enlarge the domain")
+
+    def _setup_colliders(self) -> None:
+        d, colliders = self.device, self.config.colliders
+        shapes = [COLLIDER_SHAPES[c.shape] for c in colliders] or [0]
+        sizes = [tuple(c.size) + (0.0,) * (3 - len(c.size)) for c in colliders] or [(0.0,) * 3]
+        self._collider_shape = wp.array(shapes, dtype=int, device=d)
+        self._collider_size = wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d)
+        self._collider_friction = wp.array([c.friction for c in colliders] or [0.0], dtype=float,
+                                           device=d)
+        self._collider_rows = 0
+
+    def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
+        """Fill the collider pose arrays for the substeps of one frame."""
+        colliders = self.config.colliders
+        if not colliders:
+            if self._collider_rows == 0:
+                self._collider_pos = wp.zeros(1, dtype=wp.vec3, device=self.device)
+                self._collider_rot = wp.zeros(1, dtype=wp.quat, device=self.device)
+                self._collider_vel = wp.zeros(1, dtype=wp.vec3, device=self.device)
+                self._collider_omega = wp.zeros(1, dtype=wp.vec3, device=self.device)
+                self._collider_rows = 1
+            return
+        t0 = frame * self.config.frame_dt
+        pos = np.zeros((n_sub, len(colliders), 3), np.float32)
+        rot = np.zeros((n_sub, len(colliders), 4), np.float32)
+        vel = np.zeros((n_sub, len(colliders), 3), np.float32)
+        omega = np.zeros((n_sub, len(colliders), 3), np.float32)
+        for s in range(n_sub):
+            for c, collider in enumerate(colliders):
+                t = t0 + s * dt
+                pos[s, c], rot[s, c] = collider.pose(t)
+                vel[s, c], omega[s, c] = collider.velocity(t)
+        d = self.device
+        self._collider_pos = wp.array(pos.reshape(-1, 3), dtype=wp.vec3, device=d)
+        self._collider_rot = wp.array(rot.reshape(-1, 4), dtype=wp.quat, device=d)
+        self._collider_vel = wp.array(vel.reshape(-1, 3), dtype=wp.vec3, device=d)
+        self._collider_omega = wp.array(omega.reshape(-1, 3), dtype=wp.vec3, device=d)
+
+    def set_initial_velocity(self, v: np.ndarray) -> None:
+        """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
+        v = np.broadcast_to(np.asarray(v, dtype=np.float32),
+                            (self.n_batch, self.n_particles, 3))
+        self.v0.assign(np.ascontiguousarray(v).reshape(-1, 3))
+
+    def set_volume(self, volume: np.ndarray) -> None:
+        """Particle volumes (m^3), (N,) for every batch or (B, N)."""
+        volume = np.broadcast_to(np.asarray(volume, dtype=np.float32),
+                                 (self.n_batch, self.n_particles))
+        if np.any(~np.isfinite(volume)) or np.any(volume < 0):
+            raise ParameterError("particle volumes must be finite and non-negative")
+        self.volume.assign(np.ascontiguousarray(volume).ravel())
+
+    # --- time stepping --------------------------------------------------------------------
+
+    def time_step(self, substeps: int | None = None) -> tuple[int, float]:
+        """(substeps per frame, dt) for the current parameters of every batch.
+
+        ``substeps`` forces a count (e.g. to compare rollouts at fixed discretisation, as a
+        finite-difference check must); it is refused when below the stability bound.
+        """
+        speeds = [0.0]
+        for k, o in enumerate(self.objects):
+            values = {s.name: self.params.get(s.name)[:, k] for s in MATERIAL_PARAMS}
+            speeds.append(float(np.max(wave_speed(o.family, values))))
+        v0_max = float(np.max(np.linalg.norm(self.v0.numpy(), axis=1), initial=0.0))
+        dt = self.config.cfl * self.dx / (max(speeds) + self.config.max_speed + v0_max)
+        # Explicit viscosity: nu dt / dx^2 <= 1 / (2 d), d = 3
+        rho = self.params.get("density")
+        for k, o in enumerate(self.objects):
+            if o.family == "fluid":
+                eta = self.params.get("viscosity")[:, k]
+                if np.any(eta > 0):
+                    dt = min(dt, float(np.min(rho[:, k] * self.dx**2 / (6.0 * np.maximum(eta, 1e-30)))))
+        for effect in self.effects:
+            values = {s.name: self.params.get(f"{effect.name}.{s.name}") for s in effect.params}
+            dt = min(dt, effect.time_step_limit(values, self.dx, float(np.min(rho))))
+        n_sub = math.ceil(self.config.frame_dt / dt - 1e-9)
+        if substeps is not None:
+            if substeps < n_sub:
+                raise ParameterError(f"substeps={substeps} per frame is below the stability bound "
+                                     f"of {n_sub} for these parameters")
+            n_sub = int(substeps)
+        if n_sub > self.config.max_substeps:
+            raise ParameterError(
+                f"the time step bound ({dt:.3g} s) needs {n_sub} substeps per frame, more than "
+                f"max_substeps={self.config.max_substeps}; lower the stiffness or raise dx")
+        return n_sub, self.config.frame_dt / n_sub
+
+    def _values(self, effect: Effect) -> dict[str, wp.array]:
+        return {s.name: self.params[f"{effect.name}.{s.name}"] for s in effect.params}
+
+    def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float) -> None:
+        d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
+        p = self.params
+        dims = wp.vec3i(*self.dims)
+        lo = wp.vec3(*self.lo)
+        for array in grid.arrays:
+            array.zero_()
+        if self._stress:
+            view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
+            for effect in self.effects:
+                if effect.has_stress:
+                    effect.stress(view, self._values(effect))
+        wp.launch(kernels.p2g, dim=B * N, device=d, inputs=[
+            src.x, src.v, src.C, src.b, self.volume, grid.tau, self.obj, self.family,
+            p["E"], p["nu"], p["yield_stress"], p["friction_angle"], p["bulk_modulus"],
+            p["viscosity"], p["density"], N, K, G, dims, lo, self.dx, dt,
+        ], outputs=[dst.b, grid.m, grid.p])
+        view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d)
+        for effect in self.effects:
+            if effect.has_accelerate:
+                effect.accelerate(view, self._values(effect))
+        wp.launch(kernels.grid_update, dim=B * G, device=d, inputs=[
+            grid.m, grid.p, grid.a, p["friction"], self.normal_rank, p["ground.height"], p["ground.normal"],
+            p["ground.friction"], int(self.config.ground is not None),
+            self._collider_shape, self._collider_size, self._collider_friction,
+            self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
+            row, len(self.config.colliders), K, G, dims, lo, self.dx, dt,
+        ], outputs=[grid.v])
+        wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
+            src.x, grid.v, self.obj, N, K, G, dims, lo, self.dx, dt,
+        ], outputs=[dst.x, dst.v, dst.C])
+
+    def _check(self, state: _State, frame: int, dt: float) -> None:
+        K = self.n_objects
+        stats = wp.array(np.tile([0.0, 0.0, 0.0, np.inf], self.n_batch * K).astype(np.float32),
+                         dtype=float, device=self.device)
+        wp.launch(kernels.check_state, dim=self.n_batch * self.n_particles, device=self.device,
+                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, K,
+                          wp.vec3(*self.lo), wp.vec3(*self.hi)], outputs=[stats])
+        stats = stats.numpy().reshape(self.n_batch, K, 4)
+        limit = self.dx / dt
+        for b in range(self.n_batch):
+            for k, o in enumerate(self.objects):
+                speed, bad, outside, det = stats[b, k]
+                reason = None
+                if bad > 0:
+                    reason = f"{int(bad)} particle(s) have non-finite positions, velocities or deformation"
+                elif speed > limit:
+                    reason = (f"speed {speed:.3g} m/s exceeds one grid cell per substep "
+                              f"({limit:.3g} m/s)")
+                elif det <= 1e-6:
+                    reason = f"the deformation inverted (det b = {det:.3g})"
+                elif outside > 0:
+                    reason = f"{int(outside)} particle(s) left the simulation domain; enlarge it"
+                if reason:
+                    values = ", ".join(f"{n}={self.params.get(n)[b, k]:.4g}"
+                                       for n in ("E", "nu", "density") if o.family != "fluid")
+                    raise SimulationDiverged(frame, o.name, b,
+                                             f"{reason} ({o.family}{'; ' + values if values else ''};"
+                                             f" dt={dt:.3g} s, dx={self.dx:g} m)")
+
+    # --- rollouts and gradients ------------------------------------------------------------
+
+    def _assign_state(self, state: _State, given: SimState) -> None:
+        B, N = self.n_batch, self.n_particles
+        for array, values, width in zip(state.arrays, (given.x, given.v, given.C, given.b),
+                                        (3, 3, 9, 9), strict=True):
+            values = np.broadcast_to(np.asarray(values, dtype=np.float32),
+                                     (B, N) + ((3,) if width == 3 else (3, 3)))
+            array.assign(np.ascontiguousarray(values).reshape(B * N, *values.shape[2:]))
+
+    def _initial_state(self, state: _State) -> None:
+        wp.launch(_init_state, dim=self.n_batch * self.n_particles, device=self.device,
+                  inputs=[self.x0, self.v0, self.n_particles],
+                  outputs=[state.x, state.v, state.C, state.b])
+
+    def last_state(self) -> SimState:
+        """The particle state at the end of the last rollout."""
+        if self._final is None:
+            raise RuntimeError("last_state() needs a preceding rollout()")
+        B, N = self.n_batch, self.n_particles
+        x, v, C, b = (a.numpy().astype(np.float64) for a in self._final.arrays)
+        return SimState(x.reshape(B, N, 3), v.reshape(B, N, 3), C.reshape(B, N, 3, 3),
+                        b.reshape(B, N, 3, 3))
+
+    def rollout(self, n_frames: int, *, grad: bool = False, check: bool = True,
+                substeps: int | None = None, initial: SimState | None = None,
+                progress=None) -> np.ndarray:
+        """Advance ``n_frames`` frames; positions (n_frames + 1, B, N, 3), frame 0 the start.
+
+        ``grad=True`` keeps per-frame checkpoints for ``backward``. ``substeps`` forces the
+        substeps per frame (see ``time_step``). ``initial`` starts from a given state (e.g. the
+        ``last_state()`` of an earlier rollout, or positions resynchronised to observations);
+        by default the rollout starts at rest deformation from the particles and ``v0``. Time
+        (for colliders) starts at 0 either way. ``progress(frame)`` is called after each frame.
+        """
+        self.params.validate()
+        n_sub, dt = self.time_step(substeps)
+        B, N = self.n_batch, self.n_particles
+        total = B * N
+        states = [_State(total, self.device, False) for _ in range(2)]
+        grid = _Grid(B * self.n_objects * self.n_nodes, total, self._stress, self.device, False)
+        if initial is None:
+            self._initial_state(states[0])
+        else:
+            self._assign_state(states[0], initial)
+        out = np.empty((n_frames + 1, B, N, 3), dtype=np.float32)
+        out[0] = states[0].x.numpy().reshape(B, N, 3)
+        checkpoints = []
+        if grad:
+            checkpoints.append(_clone(states[0]))
+        current = 0
+        for frame in range(n_frames):
+            self._collider_poses(frame, n_sub, dt)
+            for s in range(n_sub):
+                self._substep(states[current], states[1 - current], grid, s, dt)
+                current = 1 - current
+            if check:
+                self._check(states[current], frame + 1, dt)
+            out[frame + 1] = states[current].x.numpy().reshape(B, N, 3)
+            if grad:
+                checkpoints.append(_clone(states[current]))
+            if progress is not None:
+                progress(frame + 1)
+        self._record = {"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt} if grad else None
+        self._final = states[current]
+        _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
+                   n_frames, n_sub, dt, N, B)
+        return out
+
+    def backward(self, dL_dx: np.ndarray) -> Gradients:
+        """Gradients of a loss L given dL/dx at every frame of the last ``grad=True`` rollout.
+
+        ``dL_dx`` is (F + 1, B, N, 3) like the positions ``rollout`` returned.
+        """
+        if self._record is None:
+            raise RuntimeError("backward() needs a preceding rollout(..., grad=True)")
+        checkpoints, n_sub, dt = (self._record[k] for k in ("checkpoints", "n_sub", "dt"))
+        n_frames = len(checkpoints) - 1
+        B, N = self.n_batch, self.n_particles
+        dL_dx = np.asarray(dL_dx, dtype=np.float32)
+        if dL_dx.shape != (n_frames + 1, B, N, 3):
+            raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
+        states, grids = self._tape_buffers_for(n_sub)
+        self.params.zero_grad()
+        self.volume.grad.zero_()
+        adjoint = _State(B * N, self.device, False)
+        seed = wp.zeros(B * N, dtype=wp.vec3, device=self.device)
+        for frame in reversed(range(n_frames)):
+            for buffer in [*states, *grids]:
+                for array in buffer.arrays:
+                    array.grad.zero_()
+            states[0].copy_from(checkpoints[frame])
+            self._collider_poses(frame, n_sub, dt)
+            tape = wp.Tape()
+            with tape:
+                for s in range(n_sub):
+                    self._substep(states[s], states[s + 1], grids[s], s, dt)
+            last = states[n_sub]
+            seed.assign(dL_dx[frame + 1].reshape(-1, 3))
+            wp.launch(_add_vec3, dim=B * N, inputs=[adjoint.x, seed], outputs=[last.x.grad],
+                      device=self.device)
+            wp.copy(last.v.grad, adjoint.v)
+            wp.copy(last.C.grad, adjoint.C)
+            wp.copy(last.b.grad, adjoint.b)
+            tape.backward()
+            for dst, src in zip(adjoint.arrays, states[0].arrays, strict=True):
+                wp.copy(dst, src.grad)
+        # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
+        return Gradients(
+            params={name: self.params.grad(name) for name in self.params.specs},
+            v0=adjoint.v.numpy().reshape(B, N, 3).astype(np.float64),
+            volume=self.volume.grad.numpy().reshape(B, N).astype(np.float64),
+        )
+
+    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_State], list[_Grid]]:
+        if self._tape_buffers is None or len(self._tape_buffers[1]) != n_sub:
+            total = self.n_batch * self.n_particles
+            n_grid = self.n_batch * self.n_objects * self.n_nodes
+            self._tape_buffers = (
+                [_State(total, self.device, True) for _ in range(n_sub + 1)],
+                [_Grid(n_grid, total, self._stress, self.device, True) for _ in range(n_sub)],
+            )
+        return self._tape_buffers
+
+
+def _clone(state: _State) -> _State:
+    copy = _State(state.x.shape[0], state.x.device, False)
+    copy.copy_from(state)
+    return copy

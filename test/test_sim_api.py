@@ -1,0 +1,155 @@
+"""Simulator set-up, validation, divergence reporting, batching and continuation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from sim_scenes import chamfer, falling_ball, scene
+
+from mosiv_ros.sim import (
+    Effect,
+    ObjectModel,
+    ParameterError,
+    ParamSpec,
+    SimulationDiverged,
+)
+from mosiv_ros.sim.effects import GridView
+from mosiv_ros.sim.sampling import box, sphere
+
+
+def test_out_of_range_parameter_is_refused_naming_object_parameter_and_range():
+    with pytest.raises(ParameterError, match=r"nu of object 'ball' \(elastic\) = 0\.6 .*\[0, 0\.49\]"):
+        falling_ball("elastic", {"nu": 0.6})
+    sim = falling_ball("plastic", {})
+    with pytest.raises(ParameterError, match=r"yield_stress of object 'ball' \(plastic\) = -5 Pa"):
+        sim.params.set("yield_stress", -5.0)
+
+
+def test_parameter_a_family_does_not_use_is_not_range_checked():
+    sim = falling_ball("fluid", {"E": -1.0})  # a fluid has no Young's modulus
+    assert sim.params.get("E")[0, 0] == -1.0
+
+
+def test_unknown_family_parameter_and_object_are_refused_by_name():
+    dx = 0.02
+    ball = sphere((0.2, 0.2, 0.2), 0.05, dx / 2)
+    with pytest.raises(ParameterError, match="unknown material family 'rubber'"):
+        scene([ball], [ObjectModel("ball", "rubber")], dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
+    with pytest.raises(ParameterError, match="unknown parameter.*youngs"):
+        scene([ball], [ObjectModel("ball", "elastic", {"youngs": 1.0})], dx=dx, lo=(0, 0, 0),
+              hi=(0.4, 0.4, 0.4))
+    sim = falling_ball("elastic", {})
+    with pytest.raises(ParameterError, match="unknown object 'cube'"):
+        sim.params.set("E", {"cube": 1e5})
+
+
+def test_particles_outside_the_domain_are_refused_naming_the_object():
+    dx = 0.02
+    with pytest.raises(ParameterError, match="object 'ball'.*enlarge the domain"):
+        scene([sphere((0.05, 0.2, 0.2), 0.05, dx / 2)], [ObjectModel("ball", "elastic")],
+              dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
+
+
+@wp.kernel
+def _anti_drag(m: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
+               rate: wp.array(dtype=float), a: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    if m[i] > 0.0:
+        wp.atomic_add(a, i, p[i] / m[i] * rate[0])
+
+
+class AntiDrag(Effect):
+    """A runaway term (negative drag) plugged in through the extension point."""
+
+    name = "anti_drag"
+    params = (ParamSpec("rate", 0.0, 0.0, 1.0e4, "1/s", "growth rate"),)
+
+    def accelerate(self, grid: GridView, values: dict) -> None:
+        wp.launch(_anti_drag, dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+                  inputs=[grid.m, grid.p, values["rate"]], outputs=[grid.a], device=grid.device)
+
+
+def test_a_diverging_run_stops_with_an_error_naming_object_and_frame_not_nans():
+    sim = falling_ball("elastic", {"E": 3e4}, effects=(AntiDrag(rate=400.0),))
+    with pytest.raises(SimulationDiverged) as raised:
+        sim.rollout(20)
+    error = raised.value
+    assert error.object_name == "ball" and 1 <= error.frame < 20
+    assert "frame" in str(error) and "'ball'" in str(error)
+    assert "exceeds one grid cell per substep" in error.reason or "non-finite" in error.reason
+
+
+def test_extension_point_effect_parameters_live_in_the_parameter_table():
+    sim = falling_ball("elastic", {}, effects=(AntiDrag(rate=2.0),))
+    assert sim.params.get("anti_drag.rate")[0] == 2.0
+    with pytest.raises(ParameterError, match="anti_drag.rate.*out of range"):
+        sim.params.set("anti_drag.rate", -1.0)
+    with pytest.raises(ParameterError, match="unknown parameter.*speed"):
+        AntiDrag(speed=1.0)
+
+
+def test_batched_rollout_equals_one_rollout_per_parameter_set():
+    sims = [falling_ball("elastic", {"E": e}) for e in (3e4, 9e4)]
+    batched = falling_ball("elastic", {"E": 3e4})
+    batched = scene([(batched.x0.numpy(), batched.volume.numpy()[0])],
+                    batched.objects, dx=batched.dx, lo=batched.lo, hi=batched.hi,
+                    ground=batched.config.ground, effects=batched.effects,
+                    velocities=[(0.5, 0.0, -1.0)], n_batch=2)
+    batched.params.set("E", [[3e4], [9e4]])
+    substeps = max(s.time_step()[0] for s in sims)
+    together = batched.rollout(5, substeps=substeps)
+    for b, sim in enumerate(sims):
+        assert np.array_equal(together[:, b], sim.rollout(5, substeps=substeps)[:, 0])
+
+
+def test_batched_gradients_equal_one_backward_per_parameter_set():
+    target = falling_ball("elastic", {"E": 6e4}).rollout(4)[:, 0].astype(np.float64)
+    single = falling_ball("elastic", {"E": 3e4})
+    batched = scene([(single.x0.numpy(), single.volume.numpy()[0])], single.objects,
+                    dx=single.dx, lo=single.lo, hi=single.hi, ground=single.config.ground,
+                    effects=single.effects, velocities=[(0.5, 0.0, -1.0)], n_batch=2)
+    batched.params.set("E", [[3e4], [3e4]])
+    substeps = single.time_step()[0]
+    traj = single.rollout(4, grad=True, substeps=substeps)
+    dL = np.zeros_like(traj, dtype=np.float64)
+    dL[4, 0] = chamfer(traj[4, 0].astype(np.float64), target[4])[1]
+    expected = single.backward(dL).params["E"][0, 0]
+    batched.rollout(4, grad=True, substeps=substeps)
+    both = batched.backward(np.repeat(dL, 2, axis=1)).params["E"]
+    assert both[:, 0] == pytest.approx([expected, expected], rel=1e-5)
+
+
+def test_a_rollout_continues_from_the_last_state():
+    sim = falling_ball("elastic", {"E": 3e4})
+    substeps = sim.time_step()[0]
+    whole = sim.rollout(6, substeps=substeps)
+    sim.rollout(3, substeps=substeps)
+    rest = sim.rollout(3, substeps=substeps, initial=sim.last_state())
+    assert np.abs(rest[3] - whole[6]).max() < 1e-6
+
+
+def test_backward_needs_a_gradient_rollout_and_a_matching_seed():
+    sim = falling_ball("elastic", {})
+    with pytest.raises(RuntimeError, match="rollout"):
+        sim.backward(np.zeros((2, 1, sim.n_particles, 3)))
+    sim.rollout(2, grad=True)
+    with pytest.raises(ValueError, match="shape"):
+        sim.backward(np.zeros((5, 1, sim.n_particles, 3)))
+
+
+def test_forcing_fewer_substeps_than_the_stability_bound_is_refused():
+    sim = falling_ball("elastic", {"E": 3e4})
+    n_sub, _ = sim.time_step()
+    with pytest.raises(ParameterError, match="below the stability bound"):
+        sim.rollout(1, substeps=n_sub - 1)
+
+
+def test_stiffer_material_gets_more_substeps_per_frame():
+    soft = scene([box((0.2, 0.2, 0.2), (0.03, 0.03, 0.03), 0.01)],
+                 [ObjectModel("b", "elastic", {"E": 1e4})], dx=0.02, lo=(0, 0, 0),
+                 hi=(0.4, 0.4, 0.4))
+    hard = scene([box((0.2, 0.2, 0.2), (0.03, 0.03, 0.03), 0.01)],
+                 [ObjectModel("b", "elastic", {"E": 1e7})], dx=0.02, lo=(0, 0, 0),
+                 hi=(0.4, 0.4, 0.4))
+    assert hard.time_step()[0] > 5 * soft.time_step()[0]
