@@ -1,12 +1,19 @@
-"""Small simulator scenes shared by the simulator tests (CPU-sized: a few thousand particles)."""
+"""Small simulator scenes shared by the simulator tests (CPU-sized: a few thousand particles).
+
+The tests run on the CPU; ``MOSIV_TEST_DEVICE=cuda:0`` runs the same checks on a GPU.
+"""
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from mosiv_ros.sim import Ground, ObjectModel, Particles, SimConfig, Simulator
 from mosiv_ros.sim.sampling import box, sphere
+
+DEVICE = os.environ.get("MOSIV_TEST_DEVICE", "cpu")
 
 
 def scene(solids, objects, *, dx, lo, hi, frame_dt=0.02, ground=None, effects=None,
@@ -21,7 +28,7 @@ def scene(solids, objects, *, dx, lo, hi, frame_dt=0.02, ground=None, effects=No
                             for s, vk in zip(solids, velocities, strict=True)])
     kwargs = {} if effects is None else {"effects": list(effects)}
     cfg = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=frame_dt, ground=ground,
-                    colliders=list(colliders), device="cpu", **kwargs, **config)
+                    colliders=list(colliders), device=DEVICE, **kwargs, **config)
     return Simulator(objects, Particles(x=x, volume=volume, object_index=index, v=v), cfg,
                      n_batch=n_batch)
 

@@ -174,20 +174,41 @@ class _State:
 
 
 class _Grid:
-    """Grid arrays of one substep (all batches and object fields) and the effects' stress."""
+    """Grid arrays of one substep.
 
-    def __init__(self, n_grid: int, n_particles: int, stress: bool, device: str,
-                 requires_grad: bool) -> None:
-        self.m = wp.zeros(n_grid, dtype=float, device=device, requires_grad=requires_grad)
-        self.p = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.a = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.v = wp.zeros(n_grid, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.tau = wp.zeros(n_particles if stress else 0, dtype=wp.mat33, device=device,
-                            requires_grad=requires_grad)
+    Per (batch, object, node) fields, per (batch, node) contact sums (only with several
+    objects), and the effects' per-particle stress.
+    """
+
+    def __init__(self, n_batch: int, n_objects: int, n_nodes: int, n_particles: int, stress: bool,
+                 device: str, requires_grad: bool) -> None:
+        n_grid = n_batch * n_objects * n_nodes
+        n_contact = n_batch * n_nodes if n_objects > 1 else 1
+
+        def zeros(n, dtype, grad=requires_grad):
+            return wp.zeros(n, dtype=dtype, device=device, requires_grad=grad)
+
+        self.m = zeros(n_grid, float)
+        self.p = zeros(n_grid, wp.vec3)
+        self.a = zeros(n_grid, wp.vec3)
+        self.v = zeros(n_grid, wp.vec3)
+        self.tau = zeros(n_particles if stress else 0, wp.mat33)
+        self.node_m = zeros(n_contact, float)
+        self.present_m = zeros(n_contact, float)
+        self.present_p = zeros(n_contact, wp.vec3)
+        self.present_mu = zeros(n_contact, float)
+        self.present_count = zeros(n_contact, int, grad=False)
+        self.lead_rank = zeros(n_contact, int, grad=False)
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
-        return (self.m, self.p, self.a, self.v, self.tau)
+        """The differentiable arrays (their gradients are zeroed between frames)."""
+        return (self.m, self.p, self.a, self.v, self.tau, self.node_m, self.present_m,
+                self.present_p, self.present_mu)
+
+    def zero(self) -> None:
+        for array in (*self.arrays, self.present_count, self.lead_rank):
+            array.zero_()
 
 
 @wp.kernel
@@ -255,6 +276,7 @@ class Simulator:
         rank = np.empty(self.n_objects, dtype=np.int32)
         rank[np.argsort(sizes, kind="stable")] = np.arange(self.n_objects)
         self.normal_rank = wp.array(rank, dtype=int, device=d)
+        self.ranked_object = wp.array(np.argsort(rank), dtype=int, device=d)
         self.x0 = wp.array(particles.x.astype(np.float32), dtype=wp.vec3, device=d)
         self.volume = wp.zeros(self.n_batch * self.n_particles, dtype=float, device=d,
                                requires_grad=True)
@@ -273,9 +295,6 @@ class Simulator:
     def _check_scene(self, particles: Particles) -> None:
         if not self.objects:
             raise ParameterError("a simulation needs at least one object")
-        if len(self.objects) > kernels.MAX_OBJECTS:
-            raise ParameterError(f"{len(self.objects)} objects: at most {kernels.MAX_OBJECTS} "
-                                 "can be simulated together")
         names = [o.name for o in self.objects]
         if len(set(names)) != len(names):
             raise ParameterError(f"object names must be distinct, got {names}")
@@ -405,8 +424,7 @@ class Simulator:
         p = self.params
         dims = wp.vec3i(*self.dims)
         lo = wp.vec3(*self.lo)
-        for array in grid.arrays:
-            array.zero_()
+        grid.zero()
         if self._stress:
             view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
             for effect in self.effects:
@@ -421,9 +439,18 @@ class Simulator:
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
-        wp.launch(kernels.grid_update, dim=B * G, device=d, inputs=[
-            grid.m, grid.p, grid.a, p["friction"], self.normal_rank, p["ground.height"], p["ground.normal"],
-            p["ground.friction"], int(self.config.ground is not None),
+        if K > 1:
+            wp.launch(kernels.node_mass, dim=B * K * G, device=d, inputs=[grid.m, G, K],
+                      outputs=[grid.node_m])
+            wp.launch(kernels.contact_totals, dim=B * K * G, device=d, inputs=[
+                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, dt,
+            ], outputs=[grid.present_m, grid.present_p, grid.present_mu, grid.present_count,
+                        grid.lead_rank])
+        wp.launch(kernels.grid_update, dim=B * K * G, device=d, inputs=[
+            grid.m, grid.p, grid.a, p["friction"], grid.node_m, grid.present_m, grid.present_p,
+            grid.present_mu, grid.present_count, grid.lead_rank, self.ranked_object,
+            p["ground.height"], p["ground.normal"], p["ground.friction"],
+            int(self.config.ground is not None),
             self._collider_shape, self._collider_size, self._collider_friction,
             self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
             row, len(self.config.colliders), K, G, dims, lo, self.dx, dt,
@@ -501,7 +528,7 @@ class Simulator:
         B, N = self.n_batch, self.n_particles
         total = B * N
         states = [_State(total, self.device, False) for _ in range(2)]
-        grid = _Grid(B * self.n_objects * self.n_nodes, total, self._stress, self.device, False)
+        grid = _Grid(B, self.n_objects, self.n_nodes, total, self._stress, self.device, False)
         if initial is None:
             self._initial_state(states[0])
         else:
@@ -578,10 +605,10 @@ class Simulator:
     def _tape_buffers_for(self, n_sub: int) -> tuple[list[_State], list[_Grid]]:
         if self._tape_buffers is None or len(self._tape_buffers[1]) != n_sub:
             total = self.n_batch * self.n_particles
-            n_grid = self.n_batch * self.n_objects * self.n_nodes
             self._tape_buffers = (
                 [_State(total, self.device, True) for _ in range(n_sub + 1)],
-                [_Grid(n_grid, total, self._stress, self.device, True) for _ in range(n_sub)],
+                [_Grid(self.n_batch, self.n_objects, self.n_nodes, total, self._stress,
+                       self.device, True) for _ in range(n_sub)],
             )
         return self._tape_buffers
 
