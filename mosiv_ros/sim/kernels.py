@@ -14,7 +14,8 @@ contact algorithm for the material point method"; Huang et al. 2011): each objec
 own field, so objects do not stick together as on a single grid. At a node where two or more
 fields have mass, every field k is compared with the centre-of-mass velocity v_cm of all fields.
 As in Bardenhagen et al., one body's normal serves the pair: the unit mass gradient (central
-differences of the grid mass) of the present field of the largest object, so that a small
+differences of the grid mass) of the present field of the largest object (highest
+``normal_rank``), so that a small
 object's corners sliding on a large one do not tilt the normal (a corner's gradient would read
 tangential sliding as approach and lift the small object). n_k points from k into that object
 (out of it, for the object itself). When k approaches the others, dn = (v_k - v_cm) . n_k > 0, its
@@ -25,8 +26,9 @@ mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two object
 corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
-accumulations are ``wp.atomic_add``. Loops over objects are unrolled to ``MAX_OBJECTS`` so that
-no dynamic loop carries state (which Warp's adjoint does not support).
+accumulations are ``wp.atomic_add``. No kernel loops over objects (Warp's adjoint does not
+support dynamic loops that carry state): the sums over a node's fields are atomics in
+``node_mass`` and ``contact_totals``, and ``grid_update`` runs one thread per field node.
 """
 
 from __future__ import annotations
@@ -36,8 +38,6 @@ import warp as wp
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
 
-MAX_OBJECTS = 8
-MAX_OBJECTS_W = wp.constant(MAX_OBJECTS)
 MAX_COLLIDERS = 2
 MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
 WALL = wp.constant(WALL_CELLS)
@@ -223,12 +223,67 @@ def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.kernel
-def grid_update(
+def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int,
+              node_m: wp.array(dtype=float)):
+    """Total mass of all object fields at each node (contact pass 1, one thread per field node)."""
+    i = wp.tid()
+    m = grid_m[i]
+    if m > 0.0:
+        batch = i // (n_objects * n_nodes)
+        wp.atomic_add(node_m, batch * n_nodes + i % n_nodes, m)
+
+
+@wp.kernel
+def contact_totals(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
     normal_rank: wp.array(dtype=int),
+    node_m: wp.array(dtype=float),
+    n_nodes: int,
+    n_objects: int,
+    dt: float,
+    present_m: wp.array(dtype=float),
+    present_p: wp.array(dtype=wp.vec3),
+    present_mu: wp.array(dtype=float),
+    present_count: wp.array(dtype=int),
+    lead_rank: wp.array(dtype=int),
+):
+    """Sums over the fields present at each node (contact pass 2, one thread per field node).
+
+    A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass (the far
+    fringe of an object's kernel support takes no part in contact). Sums: mass, momentum after
+    the effects (m v), friction-weighted mass (mu m), count, and the highest normal_rank.
+    """
+    i = wp.tid()
+    m = grid_m[i]
+    if m <= 0.0:
+        return
+    batch = i // (n_objects * n_nodes)
+    k = (i // n_nodes) % n_objects
+    node = batch * n_nodes + i % n_nodes
+    if m > node_m[node] * CONTACT_MASS_FRACTION:
+        wp.atomic_add(present_m, node, m)
+        wp.atomic_add(present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
+        wp.atomic_add(present_mu, node, friction[batch * n_objects + k] * m)
+        wp.atomic_add(present_count, node, 1)
+        wp.atomic_max(lead_rank, node, normal_rank[k])
+
+
+@wp.kernel
+def grid_update(
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    friction: wp.array(dtype=float),
+    node_m: wp.array(dtype=float),
+    present_m: wp.array(dtype=float),
+    present_p: wp.array(dtype=wp.vec3),
+    present_mu: wp.array(dtype=float),
+    present_count: wp.array(dtype=int),
+    lead_rank: wp.array(dtype=int),
+    ranked_object: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
     ground_normal: wp.array(dtype=float),
     ground_friction: wp.array(dtype=float),
@@ -250,101 +305,71 @@ def grid_update(
     dt: float,
     grid_v: wp.array(dtype=wp.vec3),
 ):
-    """Velocities of every field at one node: effects, object contact, ground, walls, colliders."""
-    tid = wp.tid()
-    batch = tid // n_nodes
-    node = tid - batch * n_nodes
+    """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
+
+    The contact sums (``contact_totals``) are only read when there are several objects.
+    """
+    index = wp.tid()
+    m = grid_m[index]
+    if m <= 0.0:
+        return  # no particle's stencil reads an empty field node; grid_v was zeroed
+    batch = index // (n_objects * n_nodes)
+    k = (index // n_nodes) % n_objects
+    node = index % n_nodes
     i = node // (dims[1] * dims[2])
     j = (node // dims[2]) % dims[1]
     l = node % dims[2]
-    inv_dx = 1.0 / dx
     x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
+    vel = field_velocity(grid_m, grid_p, grid_a, index, dt)
 
-    # Pass 1: totals over the fields present at this node (for contact). A field is present
-    # when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far fringe of an
-    # object's kernel support takes no part in contact. The contact normal comes from the
-    # present field of highest ``normal_rank`` (the larger object).
-    m_all = float(0.0)
-    for k in range(MAX_OBJECTS_W):
-        if k < n_objects:
-            m_all += grid_m[(batch * n_objects + k) * n_nodes + node]
-    m_present = m_all * CONTACT_MASS_FRACTION
-    m_total = float(0.0)
-    p_total = wp.vec3(0.0)
-    mu_mass = float(0.0)
-    present = int(0)
-    lead = int(0)
-    lead_rank = int(-1)
-    for k in range(MAX_OBJECTS_W):
-        if k < n_objects:
-            index = (batch * n_objects + k) * n_nodes + node
-            m = grid_m[index]
-            if m > m_present:
-                present += 1
-                m_total += m
-                p_total += field_velocity(grid_m, grid_p, grid_a, index, dt) * m
-                mu_mass += friction[batch * n_objects + k] * m
-                if normal_rank[k] > lead_rank:
-                    lead_rank = normal_rank[k]
-                    lead = k
-    n_lead = wp.vec3(0.0)
-    if present > 1:
-        g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims, inv_dx)
-        g_len = wp.length(g_lead)
-        if g_len > 0.0:
-            n_lead = g_lead / g_len  # points into the lead object
-
-    # Ground plane and collider poses shared by all fields.
-    n_ground = wp.vec3(0.0, 0.0, 1.0)
-    phi_ground = float(1.0)
-    if has_ground != 0:
-        n_raw = wp.vec3(ground_normal[3 * batch], ground_normal[3 * batch + 1],
-                        ground_normal[3 * batch + 2])
-        n_ground = wp.normalize(n_raw)
-        phi_ground = wp.dot(n_ground, x_node) - ground_height[batch]
-
-    # Pass 2: each field's velocity.
-    for k in range(MAX_OBJECTS_W):
-        if k < n_objects:
-            index = (batch * n_objects + k) * n_nodes + node
-            m = grid_m[index]
-            vel = field_velocity(grid_m, grid_p, grid_a, index, dt)
-            if present > 1 and m > m_present and wp.length(n_lead) > 0.0:
-                mu_k = friction[batch * n_objects + k]
-                mu_pair = 0.5 * (mu_k + (mu_mass - mu_k * m) / (m_total - m))
-                # outward normal of field k towards the others: into the lead object, or out of
-                # it when k is the lead
-                n = n_lead
+    if n_objects > 1:
+        at = batch * n_nodes + node
+        if present_count[at] > 1 and m > node_m[at] * CONTACT_MASS_FRACTION:
+            lead = ranked_object[lead_rank[at]]
+            g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
+                                   1.0 / dx)
+            g_len = wp.length(g_lead)
+            if g_len > 0.0:
+                # outward normal of field k towards the others: into the lead object, or out of it
+                # when k is the lead
+                n = g_lead / g_len
                 if k == lead:
-                    n = -n_lead
-                v_cm = p_total / m_total
+                    n = -n
+                m_total = present_m[at]
+                mu_k = friction[batch * n_objects + k]
+                mu_pair = 0.5 * (mu_k + (present_mu[at] - mu_k * m) / (m_total - m))
+                v_cm = present_p[at] / m_total
                 rel = vel - v_cm
                 if wp.dot(rel, n) > 0.0:
                     # approaching: the others are a surface of outward normal -n
                     vel = v_cm + coulomb(rel, -n, mu_pair)
-            if has_ground != 0 and phi_ground < 0.0:
-                vel = coulomb(vel, n_ground, ground_friction[batch])
-            for c in range(MAX_COLLIDERS_W):
-                if c < n_colliders:
-                    row = collider_row * n_colliders + c
-                    r = x_node - collider_pos[row]
-                    local = wp.quat_rotate_inv(collider_rot[row], r)
-                    sd = collider_sdf(collider_shape[c], collider_size[c], local)
-                    if sd[0] < 0.0:
-                        normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
-                        v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
-                        vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
-            # slip walls: no velocity into a domain face within WALL nodes of it
-            vx = vel[0]
-            vy = vel[1]
-            vz = vel[2]
-            if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
-                vx = 0.0
-            if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
-                vy = 0.0
-            if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
-                vz = 0.0
-            grid_v[index] = wp.vec3(vx, vy, vz)
+
+    if has_ground != 0:
+        n_ground = wp.normalize(wp.vec3(ground_normal[3 * batch], ground_normal[3 * batch + 1],
+                                        ground_normal[3 * batch + 2]))
+        if wp.dot(n_ground, x_node) - ground_height[batch] < 0.0:
+            vel = coulomb(vel, n_ground, ground_friction[batch])
+    for c in range(MAX_COLLIDERS_W):
+        if c < n_colliders:
+            row = collider_row * n_colliders + c
+            r = x_node - collider_pos[row]
+            local = wp.quat_rotate_inv(collider_rot[row], r)
+            sd = collider_sdf(collider_shape[c], collider_size[c], local)
+            if sd[0] < 0.0:
+                normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
+                v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
+                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+    # slip walls: no velocity into a domain face within WALL nodes of it
+    vx = vel[0]
+    vy = vel[1]
+    vz = vel[2]
+    if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
+        vx = 0.0
+    if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
+        vy = 0.0
+    if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
+        vz = 0.0
+    grid_v[index] = wp.vec3(vx, vy, vz)
 
 
 @wp.kernel

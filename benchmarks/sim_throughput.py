@@ -1,0 +1,127 @@
+"""Simulator throughput and memory: forward and forward+backward, per particle count and device.
+
+    python benchmarks/sim_throughput.py --device cuda:0 --out out/sim_throughput_cuda.json
+    python benchmarks/sim_throughput.py --device cpu --particles 10000 100000
+
+Scenes: one or two elastic blocks (8 particles per cell) dropped onto the ground. Each
+configuration runs in its own subprocess (so that its peak memory is its own): one warm-up frame
+(kernel compilation), then ``--frames`` timed frames forward only, then the same frames with
+checkpoints plus the backward pass of a random dL/dx. Throughput is particle-substeps per second
+(particles x substeps / wall time). Peak memory: GPU, the largest drop of the device's free
+memory while the configuration ran; CPU, the subprocess's peak resident set size. A
+``frames_scaling`` entry repeats forward+backward of the middle configuration with twice the
+frames, to show memory grows with frames (checkpoints), not substeps.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def build(n_particles: int, n_objects: int, device: str):
+    import numpy as np
+
+    from mosiv_ros.sim import Ground, ObjectModel, Particles, SimConfig, Simulator, domain_around
+    from mosiv_ros.sim.sampling import box
+
+    dx = 0.01
+    spacing = dx / 2
+    per_object = n_particles // n_objects
+    side = round(per_object ** (1 / 3)) * spacing  # a cube of per_object particles
+    solids = [box((0.0, k * (side + 4 * dx), 0.1 + side / 2), (side / 2,) * 3, spacing)[0]
+              for k in range(n_objects)]
+    x = np.concatenate(solids)
+    index = np.concatenate([np.full(len(s), k) for k, s in enumerate(solids)])
+    lo, hi = domain_around(x, dx, margin=0.05, floor=0.1)
+    config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=1 / 30, ground=Ground(height=0.1),
+                       device=device, max_speed=2.0)
+    objects = [ObjectModel(f"block{k}", "elastic", {"E": 5e4}) for k in range(n_objects)]
+    return Simulator(objects, Particles(x=x, volume=spacing**3, object_index=index), config)
+
+
+def run_one(n_particles: int, n_objects: int, frames: int, device: str) -> dict:
+    import numpy as np
+    import warp as wp
+
+    sim = build(n_particles, n_objects, device)
+    cuda = sim.device.startswith("cuda")
+    free0 = wp.get_device(sim.device).free_memory if cuda else 0
+    lowest = [free0]
+
+    def sample(_frame=None):
+        if cuda:
+            lowest[0] = min(lowest[0], wp.get_device(sim.device).free_memory)
+
+    n_sub, _ = sim.time_step()
+    sim.rollout(1, progress=sample)  # warm-up: kernel compilation
+    start = time.perf_counter()
+    sim.rollout(frames, progress=sample)
+    forward = time.perf_counter() - start
+    start = time.perf_counter()
+    traj = sim.rollout(frames, grad=True, progress=sample)
+    dL = np.random.default_rng(0).normal(size=traj.shape).astype(np.float32) * 1e-3
+    sim.backward(dL)
+    sample()
+    both = time.perf_counter() - start
+    work = sim.n_particles * n_sub * frames
+    peak = (free0 - lowest[0]) if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {
+        "particles": sim.n_particles, "objects": n_objects, "grid_nodes": sim.n_nodes * n_objects,
+        "frames": frames, "substeps_per_frame": n_sub, "device": sim.device,
+        "forward_s": forward, "forward_backward_s": both,
+        "forward_particle_substeps_per_s": work / forward,
+        "forward_backward_particle_substeps_per_s": work / both,
+        "backward_over_forward": (both - forward) / forward,
+        "peak_memory_bytes": int(peak), "peak_memory_kind": "device" if cuda else "process RSS",
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--particles", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
+    parser.add_argument("--objects", type=int, nargs="+", default=[1, 2])
+    parser.add_argument("--frames", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=None, help="write the JSON here too")
+    parser.add_argument("--one", nargs=3, type=int, metavar=("N", "K", "FRAMES"),
+                        help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.one:
+        print(json.dumps(run_one(*args.one, args.device)))
+        return 0
+    results = []
+    for n in args.particles:
+        for k in args.objects:
+            results.append(_child(n, k, args.frames, args.device))
+            print(json.dumps(results[-1]), flush=True)
+    middle = args.particles[len(args.particles) // 2]
+    scaling = [_child(middle, 1, f, args.device) for f in (args.frames, 2 * args.frames)]
+    report = {"benchmark": "sim_throughput", "host": platform.node(), "python": sys.version.split()[0],
+              "results": results,
+              "frames_scaling": [{"frames": r["frames"], "peak_memory_bytes": r["peak_memory_bytes"],
+                                  "substeps_per_frame": r["substeps_per_frame"]} for r in scaling]}
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    return 0
+
+
+def _child(n: int, k: int, frames: int, device: str) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--device", device, "--one", str(n), str(k),
+                          str(frames)], capture_output=True, text=True, check=False)
+    if out.returncode != 0:
+        return {"particles": n, "objects": k, "frames": frames, "error": out.stderr[-2000:]}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
