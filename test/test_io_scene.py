@@ -10,6 +10,7 @@ from mosiv_ros.io.errors import BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
     SCENE_KEY,
+    DeclaredEffect,
     Scene,
     SceneObject,
     load_scene,
@@ -173,3 +174,60 @@ def test_errors_survive_pickling_for_the_process_runner(tmp_path):
         copy = pickle.loads(pickle.dumps(error))
         assert type(copy) is type(error) and str(copy) == str(error)
     assert SCENE_KEY == "mosiv.scene"
+
+
+DECLARED_EFFECTS = """
+objects:
+  - {id: 1, name: ball, family: elastic}
+  - {id: 2, name: clay, family: plastic}
+ground: {height: 0.05, normal: [0.1, 0, 1], friction: 0.8}
+effects:
+  - name: drag
+    params: {coefficient: {ball: 0.5, clay: 1e-1}}
+  - {name: wind, params: {a: [0.3, 0, 0]}}
+  - {name: damping}
+"""
+
+
+def test_declared_ground_and_effects_parse_and_round_trip():
+    scene = parse_scene(DECLARED_EFFECTS)
+    assert scene.ground == {"height": 0.05, "normal": [0.1, 0, 1], "friction": 0.8}
+    assert scene.effects == [
+        DeclaredEffect("drag", {"coefficient": {"ball": 0.5, "clay": 0.1}}),
+        DeclaredEffect("wind", {"a": [0.3, 0, 0]}),
+        DeclaredEffect("damping", {}),
+    ]
+    assert scene.extra == {}
+    assert parse_scene(scene_to_yaml(scene)) == scene
+
+
+def test_a_scene_without_effects_or_ground_dumps_neither_key():
+    text = scene_to_yaml(parse_scene(EXAMPLE))
+    assert "effects" not in text and "ground" not in text
+
+
+@pytest.mark.parametrize(
+    ("text", "field", "problem"),
+    [
+        ("effects: {name: drag}", "effects", "expected a list"),
+        ("effects: [drag]", "effects[0]", "expected a mapping"),
+        ("effects: [{params: {c: 1}}]", "effects[0].name", "missing"),
+        ("effects: [{name: ''}]", "effects[0].name", "non-empty string"),
+        ("effects: [{name: drag, declared: true}]", "effects[0].declared", "unknown key"),
+        ("effects: [{name: drag}, {name: drag}]", "effects[1].name", "already used by effects[0]"),
+        ("effects: [{name: wind, params: {a: [1, x, 0]}}]", "effects[0].params.a[1]", "finite number"),
+        ("effects: [{name: drag, params: {coefficient: {ball: .nan}}}]",
+         "effects[0].params.coefficient.ball", "finite number"),
+        ("effects: [{name: drag, params: 3}]", "effects[0].params", "expected a mapping"),
+        ("ground: {height: 0, tilt: 3}", "ground.tilt", "unknown key"),
+        ("ground: {normal: [0, 0]}", "ground.normal", "expected 3 numbers"),
+        ("ground: {normal: [0, 0, 0]}", "ground.normal", "zero vector"),
+        ("ground: {friction: -0.1}", "ground.friction", "must be >= 0"),
+        ("ground: [0]", "ground", "expected a mapping"),
+    ],
+)
+def test_invalid_effect_or_ground_declaration_names_the_field(text, field, problem):
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="test")
+    assert info.value.field == field
+    assert problem in info.value.problem

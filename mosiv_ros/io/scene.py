@@ -17,8 +17,21 @@ Schema, version 1::
     gripper:                        # optional: collider moved along /gripper/pose
       shape: sphere                 # non-empty string; 'sphere' requires radius
       radius: 0.02                  # metres, > 0
+    ground:                         # optional: the floor plane normal . x = height
+      height: 0.0                   # m
+      normal: [0.0, 0.0, 1.0]       # optional: a tilted floor (any non-zero vector)
+      friction: 0.5                 # optional: Coulomb coefficient, >= 0
+    effects:                        # optional: effects known to act on the scene
+      - name: drag                  # non-empty string, unique; the simulator's effect names
+                                    # (gravity, wind, drag, linear_drag, damping) or
+                                    # camera_time_offset, mask_noise
+        params: {coefficient: 0.5}  # optional: known or initial values, SI units; each a number,
+                                    # a list of numbers, or a mapping from an object (or camera)
+                                    # name to a number
 
-Unknown keys inside an object are errors (a misspelt ``params`` must not vanish silently);
+An effect or ground property that is not declared is unknown to the consumer, not absent from
+the data (DESIGN.md: an undeclared effect appears nowhere in the bag). Unknown keys inside an
+object, an effect or the ground are errors (a misspelt ``params`` must not vanish silently);
 unknown top-level keys are kept in ``Scene.extra`` for later schema versions. Gripper keys other
 than ``shape`` (and ``radius`` for spheres) are passed through unchecked: the simulator that uses
 the collider checks them.
@@ -44,6 +57,8 @@ SCHEMA_VERSION = 1
 FAMILIES = ("elastic", "plastic", "sand", "fluid")
 MAX_OBJECT_ID = 65535
 _OBJECT_KEYS = ("id", "name", "family", "params")
+_EFFECT_KEYS = ("name", "params")
+_GROUND_KEYS = ("height", "normal", "friction")
 
 
 class _Loader(yaml.SafeLoader):
@@ -61,8 +76,21 @@ _Loader.add_implicit_resolver(
 )
 
 
+def load_yaml(text: str) -> Any:
+    """Python data of YAML ``text`` (safe), reading ``2.0e5`` and ``1e-3`` as numbers.
+
+    Raises ``yaml.YAMLError`` on invalid YAML.
+    """
+    return yaml.load(text, Loader=_Loader)  # a SafeLoader subclass
+
+
 def _is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _plain(value: float) -> float | int:
+    """A plain Python number, so that the declaration always dumps as safe YAML."""
+    return int(value) if isinstance(value, int) else float(value)
 
 
 @dataclass
@@ -95,10 +123,70 @@ class SceneObject:
                 raise SceneError(
                     f"{prefix}params.{key}", f"expected a finite number in SI units, got {value!r}"
                 )
-        # Plain Python numbers only, so that the declaration always dumps as safe YAML.
+        self.params = {k: _plain(v) for k, v in self.params.items()}
+
+
+ParamValue = float | list[float] | dict[str, float]
+"""A declared effect parameter: a number, a vector, or a number per object (or camera) name."""
+
+
+@dataclass
+class DeclaredEffect:
+    """One declared effect: its name and known (or initial) parameter values, SI units."""
+
+    name: str
+    params: dict[str, ParamValue] = field(default_factory=dict)
+
+    def check(self, where: str = "") -> None:
+        """Raise SceneError naming ``where.<field>`` if a field is invalid; normalise params."""
+        prefix = f"{where}." if where else ""
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise SceneError(f"{prefix}name", f"expected a non-empty string, got {self.name!r}")
+        if not isinstance(self.params, dict):
+            raise SceneError(f"{prefix}params", f"expected a mapping, got {self.params!r}")
         self.params = {
-            k: int(v) if isinstance(v, int) else float(v) for k, v in self.params.items()
+            key: _effect_value(value, f"{prefix}params.{key}") for key, value in self.params.items()
         }
+
+
+def _finite(value: object, where: str) -> float | int:
+    if not _is_number(value) or not math.isfinite(value):
+        raise SceneError(where, f"expected a finite number in SI units, got {value!r}")
+    return _plain(value)
+
+
+def _effect_value(value: object, where: str) -> ParamValue:
+    if isinstance(value, list) and value:
+        return [_finite(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict) and value:
+        for name in value:
+            if not isinstance(name, str) or not name:
+                raise SceneError(where, f"expected object or camera names as keys, got {name!r}")
+        return {name: _finite(v, f"{where}.{name}") for name, v in value.items()}
+    return _finite(value, where)
+
+
+def _check_ground(ground: object) -> dict[str, Any]:
+    if not isinstance(ground, dict):
+        raise SceneError("ground", f"expected a mapping, got {ground!r}")
+    unknown = sorted(set(ground) - set(_GROUND_KEYS), key=str)
+    if unknown:
+        raise SceneError(f"ground.{unknown[0]}", f"unknown key (allowed: {', '.join(_GROUND_KEYS)})")
+    checked: dict[str, Any] = {}
+    if "height" in ground:
+        checked["height"] = _finite(ground["height"], "ground.height")
+    if "normal" in ground:
+        normal = ground["normal"]
+        if not isinstance(normal, list) or len(normal) != 3:
+            raise SceneError("ground.normal", f"expected 3 numbers, got {normal!r}")
+        checked["normal"] = [_finite(v, f"ground.normal[{i}]") for i, v in enumerate(normal)]
+        if not any(checked["normal"]):
+            raise SceneError("ground.normal", "must not be the zero vector")
+    if "friction" in ground:
+        checked["friction"] = _finite(ground["friction"], "ground.friction")
+        if checked["friction"] < 0:
+            raise SceneError("ground.friction", f"must be >= 0, got {checked['friction']}")
+    return checked
 
 
 def _check_gripper(gripper: object) -> None:
@@ -123,6 +211,8 @@ class Scene:
     objects: list[SceneObject] = field(default_factory=list)
     gripper: dict[str, Any] | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    ground: dict[str, Any] | None = None
+    effects: list[DeclaredEffect] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         ids: dict[int, int] = {}
@@ -142,7 +232,18 @@ class Scene:
             names[obj.name] = index
         if self.gripper is not None:
             _check_gripper(self.gripper)
-        reserved = {"version", "objects", "gripper"} & set(self.extra)
+        if self.ground is not None:
+            self.ground = _check_ground(self.ground)
+        effect_names: dict[str, int] = {}
+        for index, effect in enumerate(self.effects):
+            effect.check(f"effects[{index}]")
+            if effect.name in effect_names:
+                raise SceneError(
+                    f"effects[{index}].name",
+                    f"name {effect.name!r} already used by effects[{effect_names[effect.name]}]",
+                )
+            effect_names[effect.name] = index
+        reserved = {"version", "objects", "gripper", "ground", "effects"} & set(self.extra)
         if reserved:
             raise SceneError("extra", f"keys {sorted(reserved)} are schema fields, not extras")
 
@@ -162,7 +263,7 @@ class Scene:
 def parse_scene(yaml_text: str, source: str = "<string>") -> Scene:
     """Parse and validate a scene declaration; SceneError names ``source`` and the field."""
     try:
-        document = yaml.load(yaml_text, Loader=_Loader)  # a SafeLoader subclass
+        document = load_yaml(yaml_text)
     except yaml.YAMLError as exc:
         raise SceneError("", f"invalid YAML: {exc}", source) from None
     if document is None:
@@ -178,7 +279,17 @@ def parse_scene(yaml_text: str, source: str = "<string>") -> Scene:
         if not isinstance(raw_objects, list):
             raise SceneError("objects", f"expected a list, got {raw_objects!r}")
         objects = [_object_from_yaml(raw, f"objects[{i}]") for i, raw in enumerate(raw_objects)]
-        return Scene(objects=objects, gripper=document.pop("gripper", None), extra=document)
+        raw_effects = document.pop("effects", None) or []
+        if not isinstance(raw_effects, list):
+            raise SceneError("effects", f"expected a list, got {raw_effects!r}")
+        effects = [_effect_from_yaml(raw, f"effects[{i}]") for i, raw in enumerate(raw_effects)]
+        return Scene(
+            objects=objects,
+            gripper=document.pop("gripper", None),
+            ground=document.pop("ground", None),
+            effects=effects,
+            extra=document,
+        )
     except SceneError as exc:
         raise SceneError(exc.field, exc.problem, source) from None
 
@@ -198,6 +309,20 @@ def _object_from_yaml(raw: object, where: str) -> SceneObject:
     return SceneObject(raw["id"], raw["name"], raw["family"], {} if params is None else params)
 
 
+def _effect_from_yaml(raw: object, where: str) -> DeclaredEffect:
+    if not isinstance(raw, dict):
+        raise SceneError(where, f"expected a mapping, got {raw!r}")
+    unknown = sorted(set(raw) - set(_EFFECT_KEYS), key=str)
+    if unknown:
+        raise SceneError(
+            f"{where}.{unknown[0]}", f"unknown key (allowed: {', '.join(_EFFECT_KEYS)})"
+        )
+    if "name" not in raw:
+        raise SceneError(f"{where}.name", "missing")
+    params = raw.get("params")
+    return DeclaredEffect(raw["name"], {} if params is None else params)
+
+
 def scene_to_yaml(scene: Scene) -> str:
     """YAML text of ``scene`` that ``parse_scene`` reads back to an equal Scene."""
     document: dict[str, Any] = {"version": SCHEMA_VERSION, "objects": []}
@@ -208,6 +333,13 @@ def scene_to_yaml(scene: Scene) -> str:
         document["objects"].append(entry)
     if scene.gripper is not None:
         document["gripper"] = dict(scene.gripper)
+    if scene.ground is not None:
+        document["ground"] = dict(scene.ground)
+    if scene.effects:
+        document["effects"] = [
+            {"name": e.name, **({"params": dict(e.params)} if e.params else {})}
+            for e in scene.effects
+        ]
     document.update(scene.extra)
     return yaml.safe_dump(document, sort_keys=False)
 
