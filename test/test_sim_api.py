@@ -15,6 +15,7 @@ from mosiv_ros.sim import (
     SimulationDiverged,
 )
 from mosiv_ros.sim.effects import GridView
+from mosiv_ros.sim.params import param
 from mosiv_ros.sim.sampling import box, sphere
 
 
@@ -56,7 +57,7 @@ def _anti_drag(m: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                rate: wp.array(dtype=float), a: wp.array(dtype=wp.vec3)):
     i = wp.tid()
     if m[i] > 0.0:
-        wp.atomic_add(a, i, p[i] / m[i] * rate[0])
+        wp.atomic_add(a, i, p[i] / m[i] * param(rate, 0, i))
 
 
 class AntiDrag(Effect):
@@ -100,7 +101,8 @@ def test_batched_rollout_equals_one_rollout_per_parameter_set():
     substeps = max(s.time_step()[0] for s in sims)
     together = batched.rollout(5, substeps=substeps)
     for b, sim in enumerate(sims):
-        assert np.array_equal(together[:, b], sim.rollout(5, substeps=substeps)[:, 0])
+        # equal up to the order of float atomics (which a GPU does not fix)
+        assert np.abs(together[:, b] - sim.rollout(5, substeps=substeps)[:, 0]).max() < 1e-6
 
 
 def test_batched_gradients_equal_one_backward_per_parameter_set():

@@ -13,9 +13,11 @@ the material parameters) and implements one or both hooks:
 
 Both hooks must only *add*, with ``wp.atomic_add``: an in-place ``a[i] = a[i] + ...`` would
 give wrong adjoints on the tape. ``values`` maps the effect's own parameter names to their
-arrays. Built-in effects: gravity, a uniform body force (wind), linear and quadratic air drag, and
-Kelvin-Voigt damping. Ground friction and a tilted floor are the ground's parameters
-(``ground.friction``, ``ground.normal``; see ``boundaries``).
+replicated arrays: read value ``j`` (layout ``[batch][object][component]``) in thread ``tid``
+with ``mosiv_ros.sim.params.param(values, j, tid)``. Built-in effects: gravity, a uniform body
+force (wind), linear and quadratic air drag, and Kelvin-Voigt damping. Ground friction and a
+tilted floor are the ground's parameters (``ground.friction``, ``ground.normal``; see
+``boundaries``).
 
 What it is not for: boundary conditions that project velocities (ground, walls, colliders:
 ``boundaries`` and the grid update in ``kernels``).
@@ -31,7 +33,7 @@ import numpy as np
 import warp as wp
 
 from mosiv_ros.sim.errors import ParameterError
-from mosiv_ros.sim.params import ParamSpec
+from mosiv_ros.sim.params import ParamSpec, param
 
 
 @dataclass
@@ -121,18 +123,17 @@ class Effect:
 # --- kernels ------------------------------------------------------------------------------------
 
 
-@wp.func
-def batch_vec3(values: wp.array(dtype=float), b: int):
-    return wp.vec3(values[3 * b], values[3 * b + 1], values[3 * b + 2])
-
-
 @wp.kernel
 def uniform_acceleration_kernel(
-    values: wp.array(dtype=float), per_batch: int, a: wp.array(dtype=wp.vec3)
+    m: wp.array(dtype=float), values: wp.array(dtype=float), per_batch: int,
+    a: wp.array(dtype=wp.vec3)
 ):
-    """A += g(b) everywhere; ``per_batch`` = K * G nodes share one batch's vector."""
+    """Add g(b) at every node with mass; ``per_batch`` = K * G nodes share one batch's vector."""
     i = wp.tid()
-    wp.atomic_add(a, i, batch_vec3(values, i // per_batch))
+    if m[i] > 0.0:
+        b = i // per_batch
+        g = wp.vec3(param(values, 3 * b, i), param(values, 3 * b + 1, i), param(values, 3 * b + 2, i))
+        wp.atomic_add(a, i, g)
 
 
 @wp.kernel
@@ -149,7 +150,7 @@ def drag_kernel(
     mass = m[i]
     if mass > 0.0:
         v = p[i] / mass
-        c = coefficient[i // n_nodes]
+        c = param(coefficient, i // n_nodes, i)
         if quadratic != 0:
             c = c * wp.length(v)
         wp.atomic_add(a, i, -c * v)
@@ -170,7 +171,7 @@ def kelvin_voigt_kernel(
     batch = i // n_particles
     k = obj[i - batch * n_particles]
     J = wp.sqrt(wp.determinant(b[i]))
-    eta = viscosity[batch * n_objects + k]
+    eta = param(viscosity, batch * n_objects + k, i)
     wp.atomic_add(tau, i, (C[i] + wp.transpose(C[i])) * (J * eta))
 
 
@@ -253,7 +254,7 @@ def _uniform(grid: GridView, vector: wp.array) -> None:
     wp.launch(
         uniform_acceleration_kernel,
         dim=grid.n_batch * grid.n_objects * grid.n_nodes,
-        inputs=[vector, grid.n_objects * grid.n_nodes],
+        inputs=[grid.m, vector, grid.n_objects * grid.n_nodes],
         outputs=[grid.a],
         device=grid.device,
     )

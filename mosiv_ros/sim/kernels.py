@@ -37,6 +37,7 @@ import warp as wp
 
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
+from mosiv_ros.sim.params import param
 
 MAX_COLLIDERS = 2
 MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
@@ -107,14 +108,18 @@ def p2g(
     # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
     f = wp.identity(n=3, dtype=float) + C[i] * dt
     b_trial = f * b[i] * wp.transpose(f)
-    b_new = return_mapping(fam, b_trial, E[q], nu[q], yield_stress[q], friction_angle[q])
+    E_q = param(E, q, i)
+    nu_q = param(nu, q, i)
+    b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
+                           param(friction_angle, q, i))
     b_out[i] = b_new
-    tau = kirchhoff_stress(fam, b_new, C[i], E[q], nu[q], bulk_modulus[q], viscosity[q])
+    tau = kirchhoff_stress(fam, b_new, C[i], E_q, nu_q, param(bulk_modulus, q, i),
+                           param(viscosity, q, i))
     if tau_extra.shape[0] > 0:
         tau = tau + tau_extra[i]
     inv_dx = 1.0 / dx
     vol = volume[i]
-    mass = density[q] * vol
+    mass = param(density, q, i) * vol
     # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
     affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C[i] * mass
     base = stencil_base(x[i], lo, inv_dx, dims)
@@ -266,7 +271,7 @@ def contact_totals(
     if m > node_m[node] * CONTACT_MASS_FRACTION:
         wp.atomic_add(present_m, node, m)
         wp.atomic_add(present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
-        wp.atomic_add(present_mu, node, friction[batch * n_objects + k] * m)
+        wp.atomic_add(present_mu, node, param(friction, batch * n_objects + k, i) * m)
         wp.atomic_add(present_count, node, 1)
         wp.atomic_max(lead_rank, node, normal_rank[k])
 
@@ -336,7 +341,7 @@ def grid_update(
                 if k == lead:
                     n = -n
                 m_total = present_m[at]
-                mu_k = friction[batch * n_objects + k]
+                mu_k = param(friction, batch * n_objects + k, index)
                 mu_pair = 0.5 * (mu_k + (present_mu[at] - mu_k * m) / (m_total - m))
                 v_cm = present_p[at] / m_total
                 rel = vel - v_cm
@@ -345,10 +350,11 @@ def grid_update(
                     vel = v_cm + coulomb(rel, -n, mu_pair)
 
     if has_ground != 0:
-        n_ground = wp.normalize(wp.vec3(ground_normal[3 * batch], ground_normal[3 * batch + 1],
-                                        ground_normal[3 * batch + 2]))
-        if wp.dot(n_ground, x_node) - ground_height[batch] < 0.0:
-            vel = coulomb(vel, n_ground, ground_friction[batch])
+        n_ground = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, index),
+                                        param(ground_normal, 3 * batch + 1, index),
+                                        param(ground_normal, 3 * batch + 2, index)))
+        if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < 0.0:
+            vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
     for c in range(MAX_COLLIDERS_W):
         if c < n_colliders:
             row = collider_row * n_colliders + c

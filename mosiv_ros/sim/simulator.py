@@ -541,6 +541,7 @@ class Simulator:
         current = 0
         for frame in range(n_frames):
             self._collider_poses(frame, n_sub, dt)
+            self.params.replicate()
             for s in range(n_sub):
                 self._substep(states[current], states[1 - current], grid, s, dt)
                 current = 1 - current
@@ -579,10 +580,12 @@ class Simulator:
             for buffer in [*states, *grids]:
                 for array in buffer.arrays:
                     array.grad.zero_()
+            self.params.zero_replica_grad()
             states[0].copy_from(checkpoints[frame])
             self._collider_poses(frame, n_sub, dt)
             tape = wp.Tape()
             with tape:
+                self.params.replicate()
                 for s in range(n_sub):
                     self._substep(states[s], states[s + 1], grids[s], s, dt)
             last = states[n_sub]
