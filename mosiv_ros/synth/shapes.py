@@ -32,16 +32,13 @@ import numpy as np
 from mosiv_ros.io.bag import write_recording
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
+from mosiv_ros.synth.cameras import look_at, pinhole, pixel_rays
+from mosiv_ros.synth.render import BACKGROUND_RGB, Floor, shade
 
 _LOG = logging.getLogger(__name__)
 
 GRAVITY = 9.81  # m/s^2, along -z
 FLOOR_HALF_SIZE = 1.2  # m
-CHECKER_SIZE = 0.2  # m, side of a floor square
-FLOOR_RGB = (np.array([150.0, 150.0, 140.0]), np.array([105.0, 105.0, 100.0]))
-BACKGROUND_RGB = np.array([30, 34, 44], dtype=np.uint8)
-LIGHT_DIRECTION = np.array([0.4, 0.3, 1.0]) / np.linalg.norm([0.4, 0.3, 1.0])  # towards light
-AMBIENT = 0.3
 RING_RADIUS = 1.3  # m, horizontal distance of the cameras from the scene centre
 CAMERA_HEIGHT = 1.0  # m
 LOOK_AT = np.array([0.0, 0.0, 0.1])  # m
@@ -122,22 +119,12 @@ def ring_camera_pose(index: int, n_cameras: int) -> np.ndarray:
     """T_world_optical of camera ``index`` of ``n_cameras`` on the ring, looking at LOOK_AT."""
     angle = 2.0 * math.pi * index / n_cameras + 0.3
     eye = np.array([RING_RADIUS * math.cos(angle), RING_RADIUS * math.sin(angle), CAMERA_HEIGHT])
-    z = LOOK_AT - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])  # right: forward x world-up
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)  # down, so that x, y, z is right-handed
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
+    return look_at(eye, LOOK_AT)
 
 
 def ring_intrinsics(width: int, height: int) -> CameraIntrinsics:
     """Distortion-free pinhole with HORIZONTAL_FOV, square pixels, centred principal point."""
-    f = 0.5 * width / math.tan(0.5 * HORIZONTAL_FOV)
-    K = np.array([[f, 0.0, (width - 1) / 2], [0.0, f, (height - 1) / 2], [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(width=width, height=height, K=K, D=np.zeros(5))
+    return pinhole(width, height, HORIZONTAL_FOV)
 
 
 def render(
@@ -148,16 +135,14 @@ def render(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb, mask, depth) of the scene at time ``t`` seen by one camera (see module docstring)."""
     h, w = intrinsics.height, intrinsics.width
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pixels = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
     # Rays o + s d with d's optical z = 1, so the ray parameter s is the depth along optical z.
-    d = pixels @ np.linalg.inv(intrinsics.K).T @ T_world_optical[:3, :3].T
+    d = pixel_rays(intrinsics) @ T_world_optical[:3, :3].T
     o = T_world_optical[:3, 3]
 
-    depth = np.full(u.size, np.inf)
-    mask = np.zeros(u.size, dtype=np.uint8)
-    albedo = np.zeros((u.size, 3))
-    normal = np.zeros((u.size, 3))
+    depth = np.full(h * w, np.inf)
+    mask = np.zeros(h * w, dtype=np.uint8)
+    albedo = np.zeros((h * w, 3))
+    normal = np.zeros((h * w, 3))
     a = np.einsum("ij,ij->i", d, d)
     for sphere in spheres:
         c = sphere.centre(t)
@@ -173,18 +158,14 @@ def render(
         albedo[nearer] = sphere.rgb
         normal[nearer] = (o + s[nearer, None] * d[nearer] - c) / sphere.radius
 
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -o[2] / d[:, 2]
-    hit = o + s[:, None] * d
-    on_floor = (s > 0) & (np.abs(hit[:, :2]) <= FLOOR_HALF_SIZE).all(axis=1) & (s < depth)
+    s, floor_albedo, floor_normal = Floor(half_size=FLOOR_HALF_SIZE).hit(o, d)
+    on_floor = s < depth
     depth[on_floor] = s[on_floor]
-    checker = (np.floor(hit[:, 0] / CHECKER_SIZE) + np.floor(hit[:, 1] / CHECKER_SIZE)) % 2 == 0
-    albedo[on_floor] = np.where(checker[on_floor, None], *FLOOR_RGB)
-    normal[on_floor] = (0.0, 0.0, 1.0)
+    albedo[on_floor] = floor_albedo[on_floor]
+    normal[on_floor] = floor_normal
 
     seen = np.isfinite(depth)
-    shade = AMBIENT + (1.0 - AMBIENT) * np.clip(normal @ LIGHT_DIRECTION, 0.0, None)
-    rgb = np.where(seen[:, None], np.clip(albedo * shade[:, None], 0, 255), BACKGROUND_RGB)
+    rgb = np.where(seen[:, None], shade(albedo, normal), BACKGROUND_RGB)
     depth = np.where(seen, depth, np.nan).astype(np.float32)
     return rgb.round().astype(np.uint8).reshape(h, w, 3), mask.reshape(h, w), depth.reshape(h, w)
 
