@@ -31,6 +31,17 @@ def small_bag(small_recording, tmp_path_factory: pytest.TempPathFactory):
     return write_recording(small_recording, tmp_path_factory.mktemp("io") / "small")
 
 
+# synth fixtures
+
+
+@pytest.fixture(scope="session")
+def synth_pair_bag(tmp_path_factory: pytest.TempPathFactory):
+    """``synth_scenes.PAIR`` recorded by the synthetic recorder (seed 0). Shared: never change it."""
+    from synth_scenes import PAIR, record_scene
+
+    return record_scene(tmp_path_factory.mktemp("synth"), PAIR, "pair")
+
+
 # ros fixtures
 
 

@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.bag import write_recording
+from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.recording import Camera, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.sim import MATERIAL_PARAMS, ObjectModel, Particles, SimConfig, Simulator, domain_around
@@ -52,6 +53,8 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     Raises SceneError for a bad scene, ``mosiv_ros.sim`` errors when the simulation cannot run or
     diverges, BagError when the bag cannot be written.
     """
+    if Path(out).exists():  # before minutes of simulation, not after
+        raise BagError(out, None, "cannot create bag: the path already exists")
     layout = lay_out(spec)
     offsets = camera_offsets(spec.effects)
     extra = math.ceil(max([0.0, *offsets.values()]) * spec.cameras.fps)  # frames a late camera needs
@@ -145,7 +148,7 @@ def _at(positions: np.ndarray, frame: float) -> np.ndarray:
     frame = min(max(frame, 0.0), len(positions) - 1.0)
     i = min(int(math.floor(frame)), len(positions) - 2)
     w = frame - i
-    return positions[i] if w == 0 else (1.0 - w) * positions[i] + w * positions[i + 1]
+    return positions[i] if w < 1e-9 else (1.0 - w) * positions[i] + w * positions[i + 1]
 
 
 def render_cameras(layout: Layout, positions: np.ndarray, offsets: dict[str, float],
@@ -162,19 +165,19 @@ def render_cameras(layout: Layout, positions: np.ndarray, offsets: dict[str, flo
         labels = np.concatenate([labels, np.zeros(len(grip), dtype=labels.dtype)])
         albedo = np.concatenate([albedo, np.tile(spec.gripper.color, (len(grip), 1))])
 
-    def splats(t: float) -> Splats:
-        x = _at(positions, t * fps)
+    def splats(frame: float) -> Splats:
+        x = _at(positions, frame)
         if spec.gripper is not None:
-            position, quaternion = layout.collider.pose(t)
+            position, quaternion = layout.collider.pose(frame / fps)
             x = np.concatenate([x, grip @ Rotation.from_quat(quaternion).as_matrix().T + position])
         return Splats(x, labels, albedo, surface_normals(x, labels, spacing), SPLAT_RADIUS * spacing)
 
     frames: dict[str, list[Frame]] = {name: [] for name in cams.names}
     total, done = (spec.n_frames + 1) * len(cams.names), 0
     for k in range(spec.n_frames + 1):
-        shared = splats(k / fps)
+        shared = splats(float(k))
         for name, pose in zip(cams.names, cams.poses, strict=True):
-            view = splats(k / fps + offsets[name]) if name in offsets else shared
+            view = splats(k + offsets[name] * fps) if name in offsets else shared
             rgb, mask, depth = render_view(cams.intrinsics, pose, view, floor)
             frames[name].append(Frame(spec.stamp_ns(k), *_add_noise(layout, rgb, mask, depth, rng)))
             done += 1

@@ -1,0 +1,72 @@
+"""Scene files shared by the synthetic-recorder tests (CPU-sized: a few hundred particles)."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import yaml
+
+FPS = 10.0
+CAM0 = {"name": "cam0", "position": [0.45, -0.3, 0.3], "look_at": [0.0, 0.0, 0.05]}
+PAIR = {
+    "name": "test_pair",
+    "duration": 0.5,
+    "objects": [
+        {"name": "clay", "shape": "box", "size": [0.14, 0.12, 0.05], "position": [0.0, 0.0, 0.025],
+         "family": "plastic", "params": {"E": 5.0e4, "yield_stress": 2.0e3, "density": 1200},
+         "declared_params": ["density"], "color": [40, 170, 60], "texture": "checker"},
+        {"name": "ball", "shape": "sphere", "radius": 0.045, "position": [-0.02, 0.0, 0.12],
+         "velocity": [0.3, 0.0, -0.5], "family": "elastic", "params": {"E": 4.0e4},
+         "color": [210, 40, 35]},
+    ],
+    "gripper": {"shape": "sphere", "radius": 0.025, "trajectory": [
+        {"t": 0.0, "position": [0.15, 0.0, 0.04]}, {"t": 0.5, "position": [0.08, 0.0, 0.04]}]},
+    "cameras": {
+        "placement": "explicit",
+        "poses": [
+            CAM0,
+            {"name": "cam1", "position": [-0.35, -0.4, 0.25], "look_at": [0.0, 0.0, 0.05]},
+            {"name": "top", "position": [0.0, 0.0, 0.6], "look_at": [0.0, 0.0, 0.0]},
+            {**CAM0, "name": "late"},
+        ],
+        "resolution": [64, 48],
+        "horizontal_fov": 0.9,
+        "fps": FPS,
+    },
+    "effects": [
+        {"type": "wind", "a": [0.5, 0.0, 0.0], "declared": True},
+        {"type": "floor_friction", "friction": 0.8, "declared": True},
+        {"type": "camera_time_offset", "camera": "late", "offset": 1.0 / FPS, "declared": True},
+        {"type": "drag", "coefficient": 1.5, "declared": False},
+    ],
+    "simulation": {"dx": 0.03, "margin": 0.1},
+}
+"""A ball dropped onto a clay slab while a gripper pushes the slab, seen by four cameras.
+
+``top`` looks straight down, so the ball hides the middle of the slab; ``late`` shares cam0's
+pose and runs one frame ahead. Wind and floor friction are declared, air drag is not.
+"""
+
+
+def pair_scene(**changes: object) -> dict:
+    """A deep copy of PAIR with top-level keys replaced."""
+    scene = copy.deepcopy(PAIR)
+    scene.update(copy.deepcopy(changes))
+    return scene
+
+
+def write_scene(directory: Path, scene: dict, name: str = "scene.yaml") -> Path:
+    """Write ``scene`` as a scene file in ``directory``; return its path."""
+    path = Path(directory) / name
+    path.write_text(yaml.safe_dump(scene, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def record_scene(directory: Path, scene: dict, name: str, seed: int = 0) -> Path:
+    """Record ``scene`` into the bag ``directory/name`` with the project's recorder."""
+    from mosiv_ros.synth.recorder import record
+    from mosiv_ros.synth.scene_file import read_scene_file
+
+    return record(read_scene_file(write_scene(directory, scene, f"{name}.yaml")), Path(directory) / name,
+                  seed=seed)
