@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from synth_scenes import FPS, PAIR, pair_scene, record_scene, write_scene
@@ -18,7 +20,7 @@ from mosiv_ros.synth.ground_truth import (
     read_ground_truth,
     read_ground_truth_particles,
 )
-from mosiv_ros.synth.scene_file import DEFAULT_START_NS
+from mosiv_ros.synth.scene_file import DEFAULT_START_NS, read_scene_file
 
 CAMERAS = ("cam0", "cam1", "top", "late")
 N_FRAMES = 6  # 0.5 s at 10 fps, both ends
@@ -162,3 +164,25 @@ def test_record_command_refuses_to_overwrite_and_names_bad_fields(tmp_path, synt
     assert main(["record", str(write_scene(tmp_path, bad, "bad.yaml")), str(tmp_path / "out")]) == 2
     assert "duration: must be positive, got -1.0" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+SAMPLES = ("elastic_on_plastic", "sand_and_elastic", "thrown_ball")
+
+
+@pytest.mark.parametrize("name", SAMPLES)
+def test_committed_sample_bag_matches_its_scene_file_and_hides_undeclared_effects(name):
+    root = Path(__file__).parents[1]
+    bag, spec = root / "bags" / name, read_scene_file(root / "config" / "scenes" / f"{name}.yaml")
+    recording = read_recording(bag)
+    assert [(o.name, o.family) for o in recording.scene.objects] == [(o.name, o.family) for o in spec.objects]
+    assert sorted(recording.cameras) == sorted(spec.cameras.names)
+    assert all(len(c.frames) == spec.n_frames + 1 for c in recording.cameras.values())
+    truth = read_ground_truth(bag)
+    assert [o["params"] for o in truth["objects"]] == [o.params for o in spec.objects]
+    assert read_ground_truth_particles(bag).positions.shape[0] == spec.n_frames + 1
+    hidden = [e.type for e in spec.effects if not e.declared]
+    assert [e["type"] for e in truth["effects"] if not e["declared"]] == hidden
+    custom = read_custom_data(bag)
+    for effect in hidden:
+        assert effect not in str(custom) and effect not in (bag / "metadata.yaml").read_text()
+    assert hidden == (["drag"] if name == "thrown_ball" else [])
