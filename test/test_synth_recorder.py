@@ -186,3 +186,49 @@ def test_committed_sample_bag_matches_its_scene_file_and_hides_undeclared_effect
     for effect in hidden:
         assert effect not in str(custom) and effect not in (bag / "metadata.yaml").read_text()
     assert hidden == (["drag"] if name == "thrown_ball" else [])
+
+
+def _raised(scene: dict, dz: float) -> dict:
+    for obj in scene["objects"]:
+        obj["position"][2] += dz
+    return scene
+
+
+def test_a_tilted_floor_is_simulated_and_rendered_on_the_tilted_plane(tmp_path):
+    normal = np.array([0.2, 0.0, 1.0]) / np.hypot(0.2, 1.0)
+    scene = _raised(pair_scene(effects=[{"type": "floor_tilt", "normal": [0.2, 0.0, 1.0], "declared": False}],
+                               duration=0.3), 0.04)
+    del scene["gripper"]
+    bag = record_scene(tmp_path, scene, "tilted")
+    recording = read_recording(bag)
+    assert recording.scene.ground == {"height": 0.0}  # undeclared: the plain floor is all it says
+    assert read_ground_truth(bag)["simulation"]["ground"]["normal"] == pytest.approx(normal.tolist())
+    for name in ("cam0", "cam1", "top"):
+        camera = recording.cameras[name]
+        k, T = camera.intrinsics, camera.T_world_optical
+        v, u = np.mgrid[0:k.height, 0:k.width]
+        rays = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1) @ np.linalg.inv(k.K).T @ T[:3, :3].T
+        frame = camera.frames[-1]
+        floor = (frame.mask.ravel() == 0) & np.isfinite(frame.depth.ravel())
+        points = T[:3, 3] + frame.depth.ravel()[floor, None] * rays[floor]
+        assert np.all(np.abs(points @ normal) < 2e-5)
+    clay = read_ground_truth_particles(bag).of_object(1)
+    assert clay[-1, :, 0].mean() > clay[0, :, 0].mean() + 0.005  # down the slope, towards +x
+
+
+def test_gravity_damping_and_linear_drag_reach_the_simulator_and_only_declared_ones_the_bag(tmp_path):
+    effects = [{"type": "gravity", "g": [1.0, 0.0, -9.76], "declared": True},
+               {"type": "damping", "viscosity": {"ball": 5.0}, "declared": False},
+               {"type": "linear_drag", "coefficient": 0.5, "declared": True}]
+    scene = pair_scene(effects=effects, duration=0.2)
+    scene["cameras"]["depth"] = False
+    bag = record_scene(tmp_path, scene, "effects")
+    simulated = read_ground_truth(bag)["simulation"]["effects"]
+    assert simulated["gravity"]["g"] == pytest.approx([1.0, 0.0, -9.76])
+    assert simulated["damping"]["viscosity"] == pytest.approx({"clay": 0.0, "ball": 5.0})
+    assert simulated["linear_drag"]["coefficient"] == pytest.approx({"clay": 0.5, "ball": 0.5})
+    recording = read_recording(bag)
+    assert [e.name for e in recording.scene.effects] == ["gravity", "linear_drag"]
+    assert recording.scene.effects[0].params == {"g": [1.0, 0.0, -9.76]}
+    assert all(frame.depth is None for c in recording.cameras.values() for frame in c.frames)
+    assert not any("depth" in topic for topic in list_topics(bag))
