@@ -29,7 +29,16 @@ from mosiv_ros.io.bag import write_recording
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.recording import Camera, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
-from mosiv_ros.sim import MATERIAL_PARAMS, ObjectModel, Particles, SimConfig, Simulator, domain_around
+from mosiv_ros.sim import (
+    BUILTIN_EFFECTS,
+    MATERIAL_PARAMS,
+    ObjectModel,
+    Particles,
+    SimConfig,
+    Simulator,
+    domain_around,
+)
+from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.synth.bodies import gripper_points
 from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration, simulator_effects
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
@@ -201,7 +210,8 @@ def _add_noise(layout: Layout, rgb: np.ndarray, mask: np.ndarray, depth: np.ndar
 def ground_truth_document(layout: Layout, settings: dict[str, Any], seed: int) -> dict[str, Any]:
     """Everything ground_truth.yaml says about a recording (see ``ground_truth``)."""
     spec = layout.spec
-    units = {p.name: p.unit for p in MATERIAL_PARAMS}
+    units = {p.name: p.unit for p in MATERIAL_PARAMS} | {p.name: p.unit for p in GROUND_PARAMS}
+    units |= {f"{name}.{p.name}": p.unit for name, effect in BUILTIN_EFFECTS.items() for p in effect.params}
     objects = []
     for obj, body in zip(spec.objects, layout.bodies, strict=True):
         objects.append({
