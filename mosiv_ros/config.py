@@ -50,6 +50,18 @@ class ReconstructionConfig:
     sync_tolerance: float = _param(0.005, "Largest stamp difference, seconds, between frames of one frame set.")
     use_depth: bool = _param(True, "Fuse /<cam>/depth/image_rect when the recording has it.")
     voxel_size: float = _param(0.005, "Edge of the reconstruction voxel grid, metres.")
+    workspace: list[float] = _param(
+        [], "Box to reconstruct in, world frame, metres: [xmin, ymin, zmin, xmax, ymax, zmax]; "
+        "empty = a cube around the point the cameras look at, reaching to the farthest camera.")
+    min_views: int = _param(
+        0, "Cameras whose image a voxel must project into to be kept; 0 = every camera of the frame set.")
+    depth_tolerance: float = _param(
+        0.0025, "Depth carving margin, metres (about half a voxel plus the depth noise): a voxel "
+        "nearer than depth - margin is empty space.")
+    mask_filter: int = _param(
+        3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).")
+    partial_set_timeout: float = _param(
+        0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.")
     scene: str = _param("", SCENE_HELP)
 
 
@@ -61,6 +73,9 @@ class LiftingConfig:
     boundary_band: float = _param(0.008, "Half-width of the band of boundary particles around the surface, metres.")
     boundary_beta: float = _param(5.0e3, "Sharpness beta of the boundary volume sigmoid, 1/m (M-PhyGs Eq. 1).")
     boundary_eps: float = _param(1.0e-4, "Floor epsilon of the boundary volume sigmoid (M-PhyGs Eq. 1).")
+    density_iterations: int = _param(
+        1, "Rounds of 3x3x3 mean filtering of the occupancy density (occupied cells reset to 1).")
+    density_threshold: float = _param(0.5, "Density at and above which a cell is inside an object.")
     scene: str = _param("", SCENE_HELP)
 
 

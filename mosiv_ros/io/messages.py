@@ -49,6 +49,12 @@ POINT_FIELD_DTYPES: dict[int, np.dtype] = {
 }
 """sensor_msgs/PointField datatype constants (INT8 .. FLOAT64) -> numpy dtype."""
 _POINT_FIELD_CODES = {dtype: code for code, dtype in POINT_FIELD_DTYPES.items()}
+INTEGER_CLOUD_FIELDS: dict[str, np.dtype] = {
+    "object_id": np.dtype(np.uint16),
+    "material": np.dtype(np.uint8),
+    "segment": np.dtype(np.uint16),
+}
+"""PointCloud2 fields written as unsigned integers (every other extra field is float32)."""
 _CLOUD_REQUIRED = ("x", "y", "z", "object_id")
 _PADDING_FIELDS = ("", "_")  # unnamed padding, as some point-cloud tools write it
 
@@ -303,7 +309,8 @@ def pointcloud_to_msg(
     """sensor_msgs/PointCloud2 (height 1, little-endian) of N points.
 
     Fields: x, y, z float32; object_id uint16; then each entry of ``fields`` as float32, except
-    ``material`` as uint8, in the given order, each aligned to its size.
+    the integer fields of ``INTEGER_CLOUD_FIELDS`` (``material`` uint8, ``segment`` uint16), in
+    the given order, each aligned to its size.
     """
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -324,8 +331,8 @@ def pointcloud_to_msg(
             raise MessageError(
                 f"PointCloud2 field {name!r}: expected shape ({n},), got {values.shape}"
             )
-        if name in ("object_id", "material"):
-            dtype = np.dtype(np.uint16 if name == "object_id" else np.uint8)
+        if name in INTEGER_CLOUD_FIELDS:
+            dtype = INTEGER_CLOUD_FIELDS[name]
             columns.append(
                 (name, dtype, _as_integers(values, dtype, f"PointCloud2 field {name!r}"))
             )

@@ -1,0 +1,18 @@
+"""Stage 2, lifting an observed frame into per-object simulation particles (no ROS here).
+
+``lift`` / ``lift_first_complete`` (``lift``) give ``LiftedParticles``: non-overlapping per-object
+particles with signed distances, M-PhyGs boundary volumes, object ids, segments and material
+families; ``density`` holds the grid steps; ``simulation.to_sim_particles`` feeds the simulator.
+"""
+
+from mosiv_ros.lifting.lift import (
+    UNKNOWN_MATERIAL,
+    LiftedParticles,
+    boundary_volume,
+    lift,
+    lift_first_complete,
+    missing_objects,
+)
+
+__all__ = ["UNKNOWN_MATERIAL", "LiftedParticles", "boundary_volume", "lift", "lift_first_complete",
+           "missing_objects"]

@@ -1,0 +1,250 @@
+"""Stage 2: lift one observed frame into simulation particles, per object, without overlap.
+
+What it is for: ``lift`` turns an ``/mosiv/observed_objects`` cloud (occupied voxel centres per
+object, see ``mosiv_ros.recon.VOXEL_FIELD``) into ``LiftedParticles``, following MOSIV's
+multi-object lifting with M-PhyGs boundary handling:
+
+1. each object's occupancy is resampled onto one world-aligned particle lattice of spacing h;
+2. its density field is smoothed and refined so that thin parts are not eroded (``density``);
+3. every cell within ``boundary_band`` outside an object's surface, or inside it, is claimed by
+   that object; a cell claimed by several objects goes to the one with the smallest signed
+   distance (the object it lies deepest in, or, outside all, the nearest surface), so supports
+   never overlap;
+4. signed distances d_i are recomputed from each object's final inside cells, so the contact
+   interface is part of its surface, and band cells that now reach into another object are gone;
+   nothing is kept below a declared ground plane;
+5. every particle carries V_i = V_g (sigmoid(-beta (d_i + o_s)) + eps) (M-PhyGs supplement,
+   Eq. 1), V_g = h^3, with a boundary offset o_s per segment (here: per object, zero until the
+   identifier optimises it), its object id, segment and material family.
+
+What it is not for: reconstruction (``mosiv_ros.recon``) or the simulator itself
+(``simulation`` converts to ``mosiv_ros.sim.Particles``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mosiv_ros.config import LiftingConfig
+from mosiv_ros.io.recording import PointCloud
+from mosiv_ros.io.scene import FAMILIES, Scene
+from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance
+from mosiv_ros.recon.reconstruct import VOXEL_FIELD, ObservedFrame, ground_plane
+
+_LOG = logging.getLogger(__name__)
+
+UNKNOWN_MATERIAL = 255
+"""``material`` code of an object the scene does not declare (codes: index in ``FAMILIES``)."""
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def boundary_volume(sdf: np.ndarray, lattice_volume: float | np.ndarray, offset: float | np.ndarray,
+                    beta: float, eps: float) -> np.ndarray:
+    """M-PhyGs Eq. 1: V_i = V_g (sigmoid(-beta (d_i + o_s)) + eps)."""
+    x = -beta * (np.asarray(sdf, dtype=np.float64) + offset)
+    sigmoid = 0.5 * (1.0 + np.tanh(0.5 * x))  # overflow-free logistic
+    return np.asarray(lattice_volume, dtype=np.float64) * (sigmoid + eps)
+
+
+@dataclass
+class LiftedParticles:
+    """Simulation particles of every object of one frame (all arrays (N,), x (N, 3) metres).
+
+    ``sdf`` is the signed distance (m, negative inside) to the object's estimated surface,
+    ``segment`` the boundary-offset segment (the object id), ``material`` the family code.
+    """
+
+    x: np.ndarray
+    object_id: np.ndarray
+    segment: np.ndarray
+    material: np.ndarray
+    sdf: np.ndarray
+    lattice_volume: float
+    beta: float
+    eps: float
+    stamp_ns: int = 0
+    families: dict[int, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    @property
+    def object_ids(self) -> list[int]:
+        """The objects present, in id order."""
+        return sorted(int(i) for i in np.unique(self.object_id))
+
+    def volumes(self, offsets: Mapping[int, float] | None = None) -> np.ndarray:
+        """Per-particle volume (m^3) for boundary offsets o_s per segment (default 0)."""
+        offset = np.zeros(len(self.x))
+        for segment, value in (offsets or {}).items():
+            offset[self.segment == segment] = value
+        return boundary_volume(self.sdf, self.lattice_volume, offset, self.beta, self.eps)
+
+    def object_volume(self, object_id: int, offsets: Mapping[int, float] | None = None) -> float:
+        """Total particle volume (m^3) of one object."""
+        return float(self.volumes(offsets)[self.object_id == object_id].sum())
+
+    def summary(self) -> str:
+        """One line: particles and volume per object, and the time taken."""
+        parts = [f"object {i} ({self.families.get(i, 'unknown family')}): "
+                 f"{int((self.object_id == i).sum())} particles, {self.object_volume(i) * 1e6:.1f} cm^3"
+                 for i in self.object_ids]
+        return f"{len(self.x)} particles, {'; '.join(parts) or 'no object'} in {self.seconds * 1e3:.0f} ms"
+
+    def to_cloud(self) -> PointCloud:
+        """The ``/mosiv/particles`` cloud: fields volume, material, sdf, lattice_volume, segment."""
+        n = len(self.x)
+        return PointCloud(self.x, self.object_id, {
+            "volume": self.volumes().astype(np.float32),
+            "material": self.material,
+            "sdf": self.sdf.astype(np.float32),
+            "lattice_volume": np.full(n, self.lattice_volume, np.float32),
+            "segment": self.segment,
+        }, stamp_ns=self.stamp_ns)
+
+    @classmethod
+    def from_cloud(cls, cloud: PointCloud, beta: float, eps: float) -> LiftedParticles:
+        """Read a ``/mosiv/particles`` cloud back (beta, eps: the settings it was lifted with)."""
+        missing = [n for n in ("material", "sdf", "lattice_volume", "segment") if n not in cloud.fields]
+        if missing:
+            raise ValueError(f"particle cloud lacks field(s) {missing}")
+        lattice = np.unique(cloud.fields["lattice_volume"])
+        if len(lattice) > 1:
+            raise ValueError(f"particle cloud has several lattice volumes {lattice.tolist()}")
+        return cls(cloud.xyz.astype(np.float64), cloud.object_id, cloud.fields["segment"].astype(np.uint16),
+                   cloud.fields["material"].astype(np.uint8), cloud.fields["sdf"].astype(np.float64),
+                   float(lattice[0]) if len(lattice) else 0.0, beta, eps, cloud.stamp_ns)
+
+
+def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None) -> LiftedParticles:
+    """Particles of every object of one observed cloud (see the module docstring)."""
+    start = time.perf_counter()
+    h = config.particle_spacing
+    if h <= 0 or config.boundary_band < 0:
+        raise ValueError(f"need particle_spacing > 0 and boundary_band >= 0, got {h}, "
+                         f"{config.boundary_band}")
+    if VOXEL_FIELD not in cloud.fields:
+        raise ValueError(f"observed cloud at stamp {cloud.stamp_ns} ns has no {VOXEL_FIELD!r} field "
+                         "(not a reconstruction_node cloud)")
+    sizes = np.asarray(cloud.fields[VOXEL_FIELD], dtype=np.float64)
+    voxel = sizes > 0
+    ids = sorted(int(i) for i in np.unique(cloud.object_id[voxel]))
+    if not ids:
+        raise ValueError(f"observed cloud at stamp {cloud.stamp_ns} ns has no occupied voxel")
+    margin = config.boundary_band + 2 * h
+    claims = []  # per object: (keys, sdf) of every cell it claims
+    for object_id in ids:
+        mine = voxel & (cloud.object_id == object_id)
+        centres, size = cloud.xyz[mine].astype(np.float64), float(sizes[mine].max())
+        box = Box.around(centres, size / 2, margin, h)
+        occupied = occupancy_on_lattice(centres, size, box)
+        inside = refine_density(occupied, config.density_iterations, config.density_threshold)
+        sdf = signed_distance(inside, h)
+        cells = np.argwhere(sdf < config.boundary_band)
+        claims.append((_keys(box.lo + cells), sdf[tuple(cells.T)]))
+    owner = _assign(claims)
+    ground = ground_plane(scene)
+    x, object_id, sdf, warnings = [], [], [], []
+    for k, object_id_k in enumerate(ids):
+        keys, d = claims[k]
+        kept = keys[owner[k]]
+        inside_keys = kept[d[owner[k]] < 0]
+        if len(inside_keys) == 0:
+            warnings.append(f"stamp {cloud.stamp_ns} ns: object {object_id_k} lies entirely inside "
+                            "other objects; it gets no particles")
+            continue
+        cells, inside_cells = _cells(kept), _cells(inside_keys)
+        box = Box.of_cells(inside_cells, margin, h)
+        grid = np.zeros(box.shape, dtype=bool)
+        grid[tuple((inside_cells - box.lo).T)] = True
+        final = signed_distance(grid, h)[tuple((cells - box.lo).T)]
+        keep = final < config.boundary_band
+        if ground is not None:  # nothing below a declared ground, band particles included
+            keep &= (cells + 0.5) * h @ ground[0] >= ground[1]
+        x.append((cells[keep] + 0.5) * h)
+        sdf.append(final[keep])
+        object_id.append(np.full(int(keep.sum()), object_id_k, np.uint16))
+    lifted = _assemble(x, object_id, sdf, config, scene, cloud.stamp_ns, warnings)
+    lifted.seconds = time.perf_counter() - start
+    return lifted
+
+
+def missing_objects(cloud: PointCloud, scene: Scene | None) -> list[int]:
+    """Declared object ids without an occupied voxel in an observed cloud (none: it can be lifted).
+
+    Empty when there is no scene declaration.
+    """
+    if scene is None:
+        return []
+    voxel = np.asarray(cloud.fields.get(VOXEL_FIELD, np.zeros(len(cloud.xyz)))) > 0
+    return sorted(set(scene.ids) - set(np.unique(cloud.object_id[voxel]).tolist()))
+
+
+def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
+                        scene: Scene | None = None) -> LiftedParticles:
+    """Stage 2 in-process, as ``lifting_node`` does it: lift the first complete frame.
+
+    Complete: every declared object has an occupied voxel (without a declaration: any object).
+    """
+    for frame in frames:
+        cloud = frame.to_cloud()
+        missing = missing_objects(cloud, scene)
+        if missing or not np.any(np.asarray(cloud.fields[VOXEL_FIELD]) > 0):
+            _LOG.warning("stamp %d ns: objects %s not observed; waiting for a complete frame",
+                         cloud.stamp_ns, missing)
+            continue
+        lifted = lift(cloud, config, scene)
+        for message in lifted.warnings:
+            _LOG.warning(message)
+        _LOG.info("lifted stamp %d ns: %s", cloud.stamp_ns, lifted.summary())
+        return lifted
+    raise ValueError("no observed frame shows every declared object: nothing to lift")
+
+
+def _keys(cells: np.ndarray) -> np.ndarray:
+    """One int64 per lattice cell (N, 3), +-2^20 cells per axis."""
+    c = cells.astype(np.int64) + _KEY_OFFSET
+    return (c[:, 0] << (2 * _KEY_BITS)) | (c[:, 1] << _KEY_BITS) | c[:, 2]
+
+
+def _cells(keys: np.ndarray) -> np.ndarray:
+    mask = (1 << _KEY_BITS) - 1
+    return np.stack([keys >> (2 * _KEY_BITS), (keys >> _KEY_BITS) & mask, keys & mask], 1) - _KEY_OFFSET
+
+
+def _assign(claims: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    """Per object, which of its claimed cells it keeps: each cell goes to its smallest sdf."""
+    keys = np.concatenate([k for k, _ in claims])
+    sdf = np.concatenate([d for _, d in claims])
+    who = np.concatenate([np.full(len(k), i) for i, (k, _) in enumerate(claims)])
+    order = np.lexsort((who, sdf, keys))  # by cell, then deepest first, ties to the lower id
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = keys[order][1:] != keys[order][:-1]
+    won = np.zeros(len(keys), dtype=bool)
+    won[order[first]] = True
+    bounds = np.cumsum([0] + [len(k) for k, _ in claims])
+    return [won[bounds[i]:bounds[i + 1]] for i in range(len(claims))]
+
+
+def _assemble(x: list, object_id: list, sdf: list, config: LiftingConfig, scene: Scene | None,
+              stamp_ns: int, warnings: list[str]) -> LiftedParticles:
+    ids = np.concatenate(object_id) if object_id else np.zeros(0, np.uint16)
+    families = {}
+    material = np.full(len(ids), UNKNOWN_MATERIAL, np.uint8)
+    declared = {o.id: o.family for o in scene.objects} if scene is not None else {}
+    for i in sorted(int(v) for v in np.unique(ids)):
+        if i in declared:
+            families[i] = declared[i]
+            material[ids == i] = FAMILIES.index(declared[i])
+        else:
+            warnings.append(f"object {i} is not declared in the scene: material family unknown "
+                            f"(code {UNKNOWN_MATERIAL})")
+    return LiftedParticles(
+        np.concatenate(x) if x else np.zeros((0, 3)), ids, ids.copy(), material,
+        np.concatenate(sdf) if sdf else np.zeros(0), config.particle_spacing**3,
+        config.boundary_beta, config.boundary_eps, stamp_ns, families, warnings)

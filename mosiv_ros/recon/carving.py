@@ -1,0 +1,147 @@
+"""Per-object space carving on a voxel lattice, coarse to fine, with occlusion-aware rules.
+
+What it is for: the occupied voxels of one object at one stamp, from several ``View``s. A voxel
+is kept when (1) no view says it is empty, (2) it projects into at least ``min_views`` images and
+(3) at least one view shows the object there. A view says "empty" when the voxel projects onto a
+background pixel, or, with depth, lies in front of the measured surface by more than the depth
+tolerance (free space, whatever the label). A pixel of *another* object is unknown, not empty: it
+may hide this one. Pixels outside an image are unknown too. Below a known ground plane nothing is
+kept (no camera can see there, so carving alone would keep the object's shadow in the ground).
+What it is not for: separating objects from each other or extracting surfaces (``reconstruct``).
+
+Coarse to fine: cells of 2^l voxels are tested conservatively (a cell is dropped only if its
+whole projected footprint is background in some view, and kept if any footprint pixel may show
+the object), survivors split into 8, down to single voxels tested at their centres. Depth is used
+at the voxel level only.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosiv_ros.recon.views import View
+
+_LOG = logging.getLogger(__name__)
+
+COARSEST_CELLS = 16
+"""Cells per axis, at most, of the coarsest carving level."""
+FOOTPRINT_MARGIN_PX = 1.5
+"""Extra pixels around a coarse cell's projected footprint: the cell centre's and a voxel
+centre's pixel are each rounded (up to sqrt(2)/2 px apart from their projections)."""
+_CHILDREN = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Lattice:
+    """A regular voxel grid: voxel (i, j, k) spans origin + [i, i+1) * voxel_size, etc."""
+
+    origin: np.ndarray
+    voxel_size: float
+    shape: tuple[int, int, int]
+
+    @classmethod
+    def covering(cls, lo: Sequence[float], hi: Sequence[float], voxel_size: float) -> Lattice:
+        """The lattice of ``voxel_size`` with origin a multiple of it, covering lo..hi."""
+        if voxel_size <= 0:
+            raise ValueError(f"voxel_size must be positive, got {voxel_size}")
+        lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        if lo.shape != (3,) or hi.shape != (3,) or np.any(hi <= lo):
+            raise ValueError(f"workspace must be lo < hi in x, y, z; got {lo.tolist()}, {hi.tolist()}")
+        origin = np.floor(lo / voxel_size) * voxel_size
+        shape = np.ceil((hi - origin) / voxel_size - 1e-9).astype(int)
+        return cls(origin, float(voxel_size), (int(shape[0]), int(shape[1]), int(shape[2])))
+
+    def centres(self, index: np.ndarray, level: int = 0) -> np.ndarray:
+        """World centres (N, 3) of cells (N, 3) of 2^level voxels."""
+        size = self.voxel_size * (1 << level)
+        return self.origin + (index + 0.5) * size
+
+    def linear(self, index: np.ndarray) -> np.ndarray:
+        """Flat int64 index of voxels (N, 3)."""
+        return np.ravel_multi_index(index.T, self.shape).astype(np.int64)
+
+
+def carve_object(
+    views: Sequence[View],
+    object_id: int,
+    lattice: Lattice,
+    *,
+    min_views: int,
+    depth_tolerance: float,
+    ground: tuple[np.ndarray, float] | None = None,
+) -> np.ndarray:
+    """Voxel indices (N, 3) int64 occupied by ``object_id`` (see the module docstring's rules).
+
+    ``ground`` (unit normal n, height h): only voxels with n . centre >= h are kept.
+    """
+    shape = np.array(lattice.shape)
+    level = max(0, math.ceil(math.log2(max(shape.max() / COARSEST_CELLS, 1.0))))
+    top = -(-shape // (1 << level))
+    cells = np.stack(np.meshgrid(*[np.arange(n) for n in top], indexing="ij"), -1).reshape(-1, 3)
+    while level > 0:
+        keep = _keep_cells(views, object_id, lattice, cells, level, min_views)
+        if ground is not None:
+            radius = lattice.voxel_size * (1 << level) * math.sqrt(3.0) / 2.0
+            keep &= lattice.centres(cells, level) @ ground[0] + radius >= ground[1]
+        cells = cells[keep]
+        level -= 1
+        cells = (2 * cells[:, None, :] + _CHILDREN[None]).reshape(-1, 3)
+        cells = cells[np.all(cells < -(-shape // (1 << level)), axis=1)]
+    cells = cells[np.all(cells < shape, axis=1)]
+    if ground is not None:
+        cells = cells[lattice.centres(cells) @ ground[0] >= ground[1]]
+    return cells[_keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance)]
+
+
+def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: np.ndarray,
+                level: int, min_views: int) -> np.ndarray:
+    """Conservative test of cells of 2^level voxels: False only where the voxels surely fail."""
+    centres = lattice.centres(cells, level)
+    radius = lattice.voxel_size * (1 << level) * math.sqrt(3.0) / 2.0
+    carved = np.zeros(len(cells), dtype=bool)
+    seen = np.zeros(len(cells), dtype=np.int32)
+    evidence = np.zeros(len(cells), dtype=bool)
+    for view in views:
+        uv, z = view.project(centres)
+        row, col, inside = view.pixels(uv)
+        straddles = z <= radius  # the cell reaches the camera plane: no footprint, no decision
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r_px = np.where(straddles, np.inf, view.focal * radius / (z - radius)) + FOOTPRINT_MARGIN_PX
+            u, v = uv[:, 0], uv[:, 1]
+            within = (~straddles & (u - r_px >= -0.5) & (u + r_px <= view.width - 0.5)
+                      & (v - r_px >= -0.5) & (v + r_px <= view.height - 0.5))
+            touches = straddles | ((u + r_px >= -0.5) & (u - r_px <= view.width - 0.5)
+                                   & (v + r_px >= -0.5) & (v - r_px <= view.height - 0.5))
+        carved |= within & inside & (view.distance_to_any(row, col) > r_px)
+        seen += touches
+        # The object may be in the footprint: its centre pixel is near an object pixel, or part
+        # of the footprint lies outside the image, or the cell reaches the camera plane.
+        near = inside & (view.distance_to_object(object_id, row, col) <= r_px)
+        evidence |= straddles | (touches & ~within) | near
+    return ~carved & (seen >= min_views) & evidence
+
+
+def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels: np.ndarray,
+                 min_views: int, depth_tolerance: float) -> np.ndarray:
+    """Exact test of single voxels at their centres."""
+    centres = lattice.centres(voxels)
+    empty = np.zeros(len(voxels), dtype=bool)
+    seen = np.zeros(len(voxels), dtype=np.int32)
+    evidence = np.zeros(len(voxels), dtype=bool)
+    for view in views:
+        uv, z = view.project(centres)
+        row, col, inside = view.pixels(uv)
+        label = view.labels[row, col]
+        empty |= inside & (label == 0)
+        if view.depth is not None:
+            depth = view.depth[row, col]
+            with np.errstate(invalid="ignore"):
+                empty |= inside & (z < depth - depth_tolerance)
+        seen += inside
+        evidence |= inside & (label == object_id)
+    return ~empty & (seen >= min_views) & evidence

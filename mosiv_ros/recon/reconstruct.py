@@ -1,0 +1,293 @@
+"""Stage 1: per-object geometry of every frame set, from calibrated cameras, masks and depth.
+
+What it is for: ``Reconstructor.reconstruct`` turns one ``FrameSet`` into an ``ObservedFrame``:
+per object, the centres of its occupied voxels and its surface points, kept apart per object
+(never a union set), plus the filtered instance masks from which each object's per-view
+silhouette is read for the 2D loss. ``reconstruct_recording`` runs it over a whole
+``Recording`` (the in-process pipeline); ``reconstruction_node`` runs it on live topics.
+What it is not for: lifting to simulation particles (``mosiv_ros.lifting``) or evaluation
+against ground truth (``evaluation``).
+
+Per frame set: each object is carved on its own (``carving``); a voxel that two objects' carvings
+both keep (they hide each other, or the masks cannot tell them apart) goes to the object more
+views show there, ties to the object whose own evidence is nearer (its uncontested voxels and
+depth returns). Surface points are the
+object's depth returns that agree with its volume when the recording has depth, otherwise the
+centres of its boundary voxels.
+
+Problems that degrade a frame (a camera missing from the set, an object no camera sees, an object
+cut by an image border, an object left with no voxel) never raise: they are listed in
+``ObservedFrame.warnings``, which the caller reports (``iter_reconstruct`` logs them, the node
+sends them to its ROS log).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from mosiv_ros.config import ReconstructionConfig
+from mosiv_ros.io.recording import Camera, FrameSet, PointCloud, Recording, match_frames
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.recon.carving import Lattice, carve_object
+from mosiv_ros.recon.views import View, look_at_box
+
+_LOG = logging.getLogger(__name__)
+
+VOXEL_FIELD = "voxel_size"
+"""Cloud field: edge (m) of the voxel a point is the centre of; 0 for a surface point."""
+
+
+@dataclass
+class ObjectGeometry:
+    """One object at one stamp: occupied voxel centres (N, 3), surface points (M, 3), metres."""
+
+    object_id: int
+    occupancy: np.ndarray
+    surface: np.ndarray
+    voxel_size: float
+    cameras: tuple[str, ...] = ()
+    """Cameras whose (filtered) mask shows the object."""
+
+    @property
+    def volume(self) -> float:
+        """Occupied volume, m^3."""
+        return len(self.occupancy) * self.voxel_size**3
+
+
+@dataclass
+class ObservedFrame:
+    """Stage 1's result for one frame set."""
+
+    stamp_ns: int
+    objects: dict[int, ObjectGeometry]
+    masks: dict[str, np.ndarray] = field(default_factory=dict)
+    """Filtered instance masks per camera: the silhouettes for the 2D loss."""
+    warnings: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def silhouette(self, object_id: int, camera: str) -> np.ndarray:
+        """(H, W) bool: where ``camera`` sees ``object_id``."""
+        return self.masks[camera] == object_id
+
+    def to_cloud(self) -> PointCloud:
+        """The ``/mosiv/observed_objects`` cloud of this frame.
+
+        Per object (in id order) its voxel centres, then its surface points; the field
+        ``voxel_size`` tells them apart (see VOXEL_FIELD).
+        """
+        xyz, ids, sizes = [np.zeros((0, 3))], [np.zeros(0, np.uint16)], [np.zeros(0, np.float32)]
+        for object_id in sorted(self.objects):
+            geometry = self.objects[object_id]
+            for points, size in ((geometry.occupancy, geometry.voxel_size), (geometry.surface, 0.0)):
+                xyz.append(points)
+                ids.append(np.full(len(points), object_id, np.uint16))
+                sizes.append(np.full(len(points), size, np.float32))
+        return PointCloud(np.concatenate(xyz), np.concatenate(ids),
+                          {VOXEL_FIELD: np.concatenate(sizes)}, stamp_ns=self.stamp_ns)
+
+    def summary(self) -> str:
+        """One line: per object voxels, surface points and volume; the time taken."""
+        parts = [f"{i} ({len(g.occupancy)} voxels, {len(g.surface)} surface pts, "
+                 f"{g.volume * 1e6:.0f} cm^3)" for i, g in sorted(self.objects.items())]
+        return f"objects {', '.join(parts) or 'none'} in {self.seconds * 1e3:.0f} ms"
+
+
+class Reconstructor:
+    """Stage 1 for one camera rig: calibrations, scene and settings fixed, frame sets streamed."""
+
+    def __init__(self, cameras: Mapping[str, Camera], config: ReconstructionConfig,
+                 scene: Scene | None = None) -> None:
+        if not cameras:
+            raise ValueError("reconstruction needs at least one calibrated camera")
+        if config.min_views < 0:
+            raise ValueError(f"min_views must be >= 0, got {config.min_views}")
+        self.cameras = dict(cameras)
+        self.config = config
+        self.scene = scene if scene is not None and scene.objects else None
+        self.ground = ground_plane(scene)
+        if config.workspace:
+            if len(config.workspace) != 6:
+                raise ValueError(f"workspace needs 6 values [xmin, ymin, zmin, xmax, ymax, zmax], "
+                                 f"got {list(config.workspace)}")
+            lo, hi = config.workspace[:3], config.workspace[3:]
+        else:
+            lo, hi = look_at_box(self.cameras.values())
+        self.lattice = Lattice.covering(lo, hi, config.voxel_size)
+        self.notes = self._resolution_notes((np.asarray(lo) + np.asarray(hi)) / 2)
+        """Warnings about the settings, for the caller to report once."""
+
+    def _resolution_notes(self, centre: np.ndarray) -> list[str]:
+        notes = []
+        for name, camera in sorted(self.cameras.items()):
+            distance = float(np.linalg.norm(camera.T_world_optical[:3, 3] - centre))
+            footprint = distance / float(max(camera.intrinsics.K[0, 0], camera.intrinsics.K[1, 1]))
+            if self.config.voxel_size < footprint / 4:
+                notes.append(
+                    f"voxel_size {self.config.voxel_size * 1e3:.1f} mm is far below the "
+                    f"{footprint * 1e3:.1f} mm a pixel of {name} covers at the workspace centre: "
+                    f"slower, not finer; consider voxel_size >= {footprint / 2 * 1e3:.0f} mm")
+        return notes
+
+    def reconstruct(self, frame_set: FrameSet) -> ObservedFrame:
+        """Every object of one frame set (see the module docstring)."""
+        start = time.perf_counter()
+        where = f"stamp {frame_set.stamp_ns} ns"
+        warnings: list[str] = []
+        unknown = sorted(set(frame_set.frames) - set(self.cameras))
+        if unknown:
+            raise ValueError(f"{where}: cameras {unknown} have no calibration")
+        missing = sorted(set(self.cameras) - set(frame_set.frames))
+        if missing:
+            warnings.append(f"{where}: no frame from camera(s) {', '.join(missing)}; reconstructing "
+                            f"from {', '.join(sorted(frame_set.frames))}")
+        views = [View(self.cameras[name], frame, mask_filter=self.config.mask_filter,
+                      use_depth=self.config.use_depth)
+                 for name, frame in sorted(frame_set.frames.items())]
+        min_views = self.config.min_views or len(views)
+        carved: dict[int, np.ndarray] = {}
+        seen_by: dict[int, tuple[str, ...]] = {}
+        for object_id in self._object_ids(views, where, warnings):
+            seen_by[object_id] = tuple(v.camera for v in views if object_id in v.ids)
+            if not seen_by[object_id]:
+                warnings.append(f"{where}: object {self._name(object_id)} is seen by no camera; "
+                                "no geometry for it in this frame")
+                continue
+            cut = [v.camera for v in views if object_id in v.ids and v.touches_border(object_id)]
+            if cut:
+                warnings.append(f"{where}: object {self._name(object_id)} reaches the image border "
+                                f"of {', '.join(cut)}; its volume there is bounded by the other views")
+            carved[object_id] = carve_object(views, object_id, self.lattice, min_views=min_views,
+                                             depth_tolerance=self.config.depth_tolerance,
+                                             ground=self.ground)
+        surfaces = {i: np.concatenate([v.surface_points(i) for v in views]) for i in carved}
+        occupancy = _separate(self.lattice, views, carved, surfaces)
+        objects = {}
+        for object_id, voxels in occupancy.items():
+            if len(voxels) == 0:
+                warnings.append(
+                    f"{where}: object {self._name(object_id)} is seen by {', '.join(seen_by[object_id])} "
+                    f"but no voxel is consistent with every view and seen by {min_views} cameras; "
+                    "no geometry for it in this frame")
+                continue
+            surface = _surface(self.lattice, voxels, surfaces[object_id])
+            objects[object_id] = ObjectGeometry(object_id, self.lattice.centres(voxels), surface,
+                                                self.lattice.voxel_size, seen_by[object_id])
+        return ObservedFrame(frame_set.stamp_ns, objects, {v.camera: v.labels for v in views},
+                             warnings, time.perf_counter() - start)
+
+    def _object_ids(self, views: list[View], where: str, warnings: list[str]) -> list[int]:
+        seen = set().union(*(v.ids for v in views))
+        if self.scene is None:
+            return sorted(seen)
+        undeclared = sorted(seen - set(self.scene.ids))
+        if undeclared:
+            warnings.append(f"{where}: mask ids {undeclared} are not declared in the scene; "
+                            "treated as occluders only")
+        return sorted(self.scene.ids)
+
+    def _name(self, object_id: int) -> str:
+        if self.scene is not None:
+            for obj in self.scene.objects:
+                if obj.id == object_id:
+                    return f"{object_id} ({obj.name})"
+        return str(object_id)
+
+
+def ground_plane(scene: Scene | None) -> tuple[np.ndarray, float] | None:
+    """(unit normal, height) of the scene's declared ground, if its height is declared."""
+    if scene is None or not scene.ground or "height" not in scene.ground:
+        return None
+    normal = np.asarray(scene.ground.get("normal", (0.0, 0.0, 1.0)), dtype=np.float64)
+    norm = float(np.linalg.norm(normal))
+    return normal / norm, float(scene.ground["height"]) / norm
+
+
+def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarray],
+              surfaces: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """Give every voxel kept by several objects to one of them.
+
+    The winner is the claimant that the most views show at the voxel's pixel; among those tied,
+    the one whose own evidence (uncontested voxels, depth returns) is nearest.
+    """
+    keys = {i: lattice.linear(v) for i, v in carved.items()}
+    all_keys, counts = np.unique(np.concatenate(list(keys.values()) or [np.zeros(0, np.int64)]),
+                                 return_counts=True)
+    contested = all_keys[counts > 1]
+    if len(contested) == 0:
+        return dict(carved)
+    ids = sorted(carved)
+    centres = lattice.centres(np.stack(np.unravel_index(contested, lattice.shape), axis=1))
+    labels = []
+    for view in views:
+        row, col, inside = view.pixels(view.project(centres)[0])
+        labels.append(np.where(inside, view.labels[row, col], 0))
+    votes = np.full((len(ids), len(contested)), -1)
+    distance = np.full((len(ids), len(contested)), np.inf)
+    for row, object_id in enumerate(ids):
+        claims = np.isin(contested, keys[object_id])
+        if not claims.any():
+            continue
+        votes[row, claims] = sum((label[claims] == object_id).astype(int) for label in labels)
+        own = carved[object_id][~np.isin(keys[object_id], contested)]
+        evidence = np.concatenate([lattice.centres(own), surfaces[object_id]])
+        distance[row, claims] = (cKDTree(evidence).query(centres[claims])[0] if len(evidence)
+                                 else np.finfo(np.float64).max)  # no evidence of its own
+    distance[votes < votes.max(axis=0)] = np.inf
+    winner = np.asarray(ids)[np.argmin(distance, axis=0)]
+    return {i: carved[i][~np.isin(keys[i], contested[winner != i])] for i in ids}
+
+
+def _surface(lattice: Lattice, voxels: np.ndarray, depth_points: np.ndarray) -> np.ndarray:
+    """Depth returns within one voxel of the volume; without depth, boundary voxel centres."""
+    lo = voxels.min(axis=0) - 1
+    grid = np.zeros(voxels.max(axis=0) - lo + 2, dtype=bool)
+    grid[tuple((voxels - lo).T)] = True
+    if len(depth_points):
+        index = np.floor((depth_points - lattice.origin) / lattice.voxel_size).astype(np.int64) - lo
+        near = np.zeros(len(index), dtype=bool)
+        ok = np.all((index >= 1) & (index < np.array(grid.shape) - 1), axis=1)
+        for offset in np.ndindex(3, 3, 3):
+            shifted = index[ok] + np.array(offset) - 1
+            near[ok] |= grid[tuple(shifted.T)]
+        return depth_points[near]
+    return lattice.centres(np.argwhere(grid & ~_all_neighbours(grid)) + lo)
+
+
+def _all_neighbours(grid: np.ndarray) -> np.ndarray:
+    """Cells whose six face neighbours are all set (the grid has a clear one-cell border)."""
+    out = np.zeros_like(grid)
+    out[1:-1, 1:-1, 1:-1] = (grid[:-2, 1:-1, 1:-1] & grid[2:, 1:-1, 1:-1] & grid[1:-1, :-2, 1:-1]
+                             & grid[1:-1, 2:, 1:-1] & grid[1:-1, 1:-1, :-2] & grid[1:-1, 1:-1, 2:])
+    return out
+
+
+def reconstruct_recording(recording: Recording, config: ReconstructionConfig,
+                          scene: Scene | None = None) -> list[ObservedFrame]:
+    """Stage 1 over a whole recording: one ``ObservedFrame`` per frame set, in stamp order.
+
+    Frame sets are matched with ``config.sync_tolerance``; a set lacking some cameras is
+    reconstructed from the others (with a warning). ``scene`` defaults to the recording's.
+    """
+    return list(iter_reconstruct(recording, config, scene))
+
+
+def iter_reconstruct(recording: Recording, config: ReconstructionConfig,
+                     scene: Scene | None = None) -> Iterable[ObservedFrame]:
+    """``reconstruct_recording`` one frame at a time (for progress reporting)."""
+    reconstructor = Reconstructor(recording.cameras, config,
+                                  scene if scene is not None else recording.scene)
+    for message in reconstructor.notes:
+        _LOG.warning(message)
+    frame_sets = match_frames(recording.cameras, int(round(config.sync_tolerance * 1e9)))
+    for index, frame_set in enumerate(frame_sets):
+        observed = reconstructor.reconstruct(frame_set)
+        for message in observed.warnings:
+            _LOG.warning(message)
+        _LOG.info("frame %d/%d: %s", index + 1, len(frame_sets), observed.summary())
+        yield observed

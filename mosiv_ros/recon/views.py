@@ -1,0 +1,169 @@
+"""One camera's view of one frame, prepared for carving: projection, filtered labels, distances.
+
+What it is for: turning a calibrated ``Camera`` and its ``Frame`` into what the carving rules of
+``carving`` ask of a view: where a world point lands in the image and at what depth, the instance
+label and depth there, and how far (in pixels) that pixel is from the nearest pixel of a given
+object or of any object. Also the majority filter that cleans noisy instance masks and the
+automatic reconstruction box.
+What it is not for: deciding occupancy (``carving``) or assembling frames from topics
+(``mosiv_ros.io.streams``).
+
+Pixel centres are at integer coordinates (ROS/OpenCV), so a projection (u, v) falls in pixel
+(round(v), round(u)).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import cv2
+import numpy as np
+
+from mosiv_ros.io.recording import Camera, Frame
+
+#: Distance (pixels) reported where an image has no pixel of the kind asked for.
+FAR = np.float32(1e9)
+
+
+def majority_filter(labels: np.ndarray, size: int) -> np.ndarray:
+    """Each pixel takes the most frequent label of its ``size`` x ``size`` window.
+
+    Removes isolated wrong pixels (salt-and-pepper mask noise) and one-pixel jags on silhouette
+    boundaries. Ties keep the pixel's own label. ``size`` <= 1 returns the labels unchanged.
+    """
+    if size <= 1:
+        return labels
+    if size % 2 == 0:
+        raise ValueError(f"mask_filter must be odd, got {size}")
+    ids = np.unique(labels)
+    if len(ids) == 1:
+        return labels
+    best = np.full(labels.shape, -1.0, dtype=np.float32)
+    out = labels.copy()
+    for label in ids:
+        own = (labels == label).astype(np.float32)
+        # Window count of this label, plus half a vote for the pixel's own label (tie-break).
+        votes = cv2.boxFilter(own, -1, (size, size), normalize=False,
+                              borderType=cv2.BORDER_REPLICATE) + 0.5 * own
+        better = votes > best
+        out[better] = label
+        best[better] = votes[better]
+    return out
+
+
+def _distance_to(pixels: np.ndarray) -> np.ndarray:
+    """Euclidean distance (pixels) of every pixel to the nearest True pixel (FAR if none)."""
+    if not pixels.any():
+        return np.full(pixels.shape, FAR, dtype=np.float32)
+    return cv2.distanceTransform((~pixels).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+class View:
+    """One calibrated camera's labels (and depth) at one stamp, queried at world points."""
+
+    def __init__(self, camera: Camera, frame: Frame, *, mask_filter: int, use_depth: bool) -> None:
+        self.camera = camera.name
+        self.intrinsics = camera.intrinsics
+        self.T_optical_world = np.linalg.inv(camera.T_world_optical)
+        self.labels = majority_filter(frame.mask, mask_filter)
+        self.depth = frame.depth if use_depth else None
+        self.height, self.width = self.labels.shape
+        self.focal = float(max(self.intrinsics.K[0, 0], self.intrinsics.K[1, 1]))
+        self.distorted = bool(np.any(self.intrinsics.D))
+        self.ids = frozenset(int(i) for i in np.unique(self.labels) if i != 0)
+        self._distance_any = _distance_to(self.labels != 0)
+        self._distance_object: dict[int, np.ndarray] = {}
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(uv, z) of world points (N, 3).
+
+        uv: pixel coordinates (N, 2), NaN behind the camera; z: depth along the optical axis (N,).
+        """
+        R, t = self.T_optical_world[:3, :3], self.T_optical_world[:3, 3]
+        cam = points @ R.T + t
+        if self.distorted:
+            return self.intrinsics.project(cam), cam[:, 2]
+        K = self.intrinsics.K
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inverse_z = np.where(cam[:, 2] > 0, 1.0 / cam[:, 2], np.nan)
+        u = (K[0, 0] * cam[:, 0] + K[0, 1] * cam[:, 1]) * inverse_z + K[0, 2]
+        v = K[1, 1] * cam[:, 1] * inverse_z + K[1, 2]
+        return np.stack([u, v], axis=1), cam[:, 2]
+
+    def pixels(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, inside): the pixel each projection falls in, and whether it is in the image.
+
+        row and col are 0 where the projection is outside the image.
+        """
+        with np.errstate(invalid="ignore"):
+            col = np.floor(uv[:, 0] + 0.5)
+            row = np.floor(uv[:, 1] + 0.5)
+            inside = (col >= 0) & (col < self.width) & (row >= 0) & (row < self.height)
+        return np.where(inside, row, 0).astype(np.intp), np.where(inside, col, 0).astype(np.intp), inside
+
+    def distance_to_any(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Pixels from (row, col) to the nearest pixel of any object."""
+        return self._distance_any[row, col]
+
+    def distance_to_object(self, object_id: int, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Pixels from (row, col) to the nearest pixel of ``object_id``."""
+        if object_id not in self._distance_object:
+            self._distance_object[object_id] = _distance_to(self.labels == object_id)
+        return self._distance_object[object_id][row, col]
+
+    def touches_border(self, object_id: int) -> bool:
+        """Whether the object's silhouette reaches the image border (it may extend beyond it)."""
+        edges = (self.labels[0], self.labels[-1], self.labels[:, 0], self.labels[:, -1])
+        return any(bool(np.any(edge == object_id)) for edge in edges)
+
+    def surface_points(self, object_id: int) -> np.ndarray:
+        """World points (M, 3) of the object's pixels with a finite depth (empty without depth)."""
+        if self.depth is None:
+            return np.zeros((0, 3))
+        row, col = np.nonzero((self.labels == object_id) & np.isfinite(self.depth))
+        if len(row) == 0:
+            return np.zeros((0, 3))
+        z = self.depth[row, col].astype(np.float64)
+        if np.any(self.intrinsics.D):
+            rays = _undistort(self.intrinsics, col, row)
+        else:
+            rays = np.stack([col, row, np.ones_like(col)], axis=1) @ np.linalg.inv(self.intrinsics.K).T
+        cam = rays * z[:, None]
+        T = np.linalg.inv(self.T_optical_world)
+        return cam @ T[:3, :3].T + T[:3, 3]
+
+
+def _undistort(intrinsics, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Normalised rays (x, y, 1) of distorted pixels (plumb_bob), by OpenCV's iterative inverse."""
+    pixels = np.stack([col, row], axis=1).astype(np.float64).reshape(-1, 1, 2)
+    xy = cv2.undistortPoints(pixels, intrinsics.K, intrinsics.D).reshape(-1, 2)
+    return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+
+
+def look_at_box(cameras: Iterable[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the automatic reconstruction box of an inward-looking rig.
+
+    A cube around the point nearest to every optical axis, reaching the farthest camera. With a
+    single camera, or axes too close to parallel to meet, the cube is centred 1 m in front of the
+    cameras' mean position instead.
+    """
+    centres, axes = [], []
+    for camera in cameras:
+        centres.append(camera.T_world_optical[:3, 3])
+        axes.append(camera.T_world_optical[:3, 2])
+    if not centres:
+        raise ValueError("no cameras to place the reconstruction box around")
+    centres, axes = np.array(centres), np.array(axes)
+    # Least-squares point nearest to the lines c_i + s d_i: sum (I - d d^T)(p - c_i) = 0.
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, axes, strict=True):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    if len(centres) > 1 and np.linalg.cond(A) < 1e6:
+        point = np.linalg.solve(A, b)
+    else:
+        point = centres.mean(axis=0) + axes.mean(axis=0)
+    half = max(float(np.max(np.linalg.norm(centres - point, axis=1))), 0.5)
+    return point - half, point + half
