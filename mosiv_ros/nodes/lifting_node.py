@@ -1,7 +1,11 @@
 """lifting_node: the first complete observed frame in, simulation particles out (stage 2).
 
-Subscribes to ``/mosiv/observed_objects``; publishes ``/mosiv/particles`` latched (reliable +
-transient_local). Until the lifting core exists it logs each observed frame it receives.
+Subscribes to ``/mosiv/observed_objects``; lifts the first frame in which every declared object
+(parameter ``scene``) has an occupied voxel (without a declaration: the first frame with any) with
+the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, latched (reliable +
+transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
+(float32), object_id, segment (uint16) and material (uint8, the family's index in
+``mosiv_ros.io.scene.FAMILIES``, 255 = undeclared). Later frames are ignored.
 """
 
 from __future__ import annotations
@@ -10,30 +14,53 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import LiftingConfig
-from mosiv_ros.io.messages import pointcloud_from_msg
-from mosiv_ros.nodes.common import (
-    LATCHED_QOS,
-    STREAM_QOS,
-    declare_config,
-    guarded,
-    log_cloud,
-    main_for,
-)
+from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
+from mosiv_ros.io.recording import PointCloud
+from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.lifting import lift, missing_objects
+from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
 
 NAME = "lifting_node"
 SUMMARY = "fill each object's first observed frame with simulation particles (latched output)"
+TOPIC = "/mosiv/observed_objects"
 
 
 class LiftingNode(Node):
+    """Thin shell: the first complete observed cloud to the core's ``lift``, particles out."""
+
     def __init__(self) -> None:
         super().__init__(NAME)
         self.config: LiftingConfig = declare_config(self, LiftingConfig)
+        self.scene: Scene | None = load_scene(self.config.scene) if self.config.scene else None
+        self.types = rclpy_types()
         self.particles_pub = self.create_publisher(PointCloud2, "/mosiv/particles", LATCHED_QOS)
-        topic = "/mosiv/observed_objects"
+        self.lifted_stamp: int | None = None
         self.create_subscription(
-            PointCloud2, topic,
-            guarded(self, topic, pointcloud_from_msg, lambda c: log_cloud(self, topic, c)),
-            STREAM_QOS)
+            PointCloud2, TOPIC, guarded(self, TOPIC, pointcloud_from_msg, self._on_observed), STREAM_QOS)
+        declared = ", ".join(str(i) for i in self.scene.ids) if self.scene and self.scene.ids else "any"
+        self.get_logger().info(f"waiting for an observed frame with objects: {declared}")
+
+    def _on_observed(self, cloud: PointCloud) -> None:
+        if self.lifted_stamp is not None:
+            return
+        missing = missing_objects(cloud, self.scene)
+        if missing:
+            self.get_logger().warning(
+                f"{TOPIC} stamp {cloud.stamp_ns} ns: objects {missing} not observed; waiting for a "
+                "frame with every declared object")
+            return
+        try:
+            lifted = lift(cloud, self.config, self.scene)
+        except ValueError as error:
+            self.get_logger().error(f"{TOPIC} stamp {cloud.stamp_ns} ns: not lifted: {error}")
+            return
+        for message in lifted.warnings:
+            self.get_logger().warning(message)
+        particles = lifted.to_cloud()
+        self.particles_pub.publish(pointcloud_to_msg(
+            self.types, particles.xyz, particles.object_id, particles.stamp_ns, "world", particles.fields))
+        self.lifted_stamp = cloud.stamp_ns
+        self.get_logger().info(f"published particles of stamp {cloud.stamp_ns} ns: {lifted.summary()}")
 
 
 def main(args: list[str] | None = None) -> int:

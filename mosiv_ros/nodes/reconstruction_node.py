@@ -2,11 +2,22 @@
 
 Subscribes to every camera's color image, instance mask, optional depth and CameraInfo (the
 sensor-data QoS) and to ``/tf_static``; assembles each camera's frames and groups the cameras'
-frames by stamp with the core's matcher. Each complete frame set is logged; the per-object
-reconstruction that will publish ``/mosiv/observed_objects`` plugs in at ``_on_frame_set``.
+frames by stamp with the core's matcher. Each frame set goes to the core's ``Reconstructor``;
+the result is published on ``/mosiv/observed_objects``: a PointCloud2 in ``world`` with fields
+x, y, z (float32), object_id (uint16) and voxel_size (float32: the edge of the voxel a point is
+the centre of, 0 for a surface point), one message per frame set stamped with the set's stamp.
+
+A frame set still lacking some cameras is reconstructed from the others (with a warning) once a
+later set completes or ``partial_set_timeout`` has passed, so a camera that stops publishing
+degrades the result instead of stopping it. Sets that arrive before their cameras' CameraInfo and
+``/tf_static`` wait for them. Reconstruction runs in a worker thread, in stamp order, so that
+slow frames do not make the image callbacks drop messages; a growing backlog is reported.
 """
 
 from __future__ import annotations
+
+import queue
+import threading
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -17,17 +28,24 @@ from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.messages import (
     camera_info_from_msg,
     image_from_msg,
+    pointcloud_to_msg,
+    rclpy_types,
     stamp_to_ns,
     transform_from_msg,
 )
-from mosiv_ros.io.recording import FrameMatcher, FrameSet
+from mosiv_ros.io.recording import Camera, FrameMatcher, FrameSet
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, declare_config, guarded, main_for
+from mosiv_ros.recon import Reconstructor
 
 NAME = "reconstruction_node"
 SUMMARY = "group multi-camera frames by stamp and reconstruct each object's geometry per frame"
 IMAGE_TOPICS = {"rgb": "color/image_raw", "mask": "instance_mask", "depth": "depth/image_rect"}
+WORLD = "world"
+MAX_UNCALIBRATED = 30
+"""Frame sets kept while waiting for calibration; older ones are dropped with a warning."""
+BACKLOG_WARNING = 10
 TF_STATIC_QOS = QoSProfile(
     depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
 )
@@ -40,11 +58,21 @@ class ReconstructionNode(Node):
         super().__init__(NAME)
         self.config: ReconstructionConfig = declare_config(self, ReconstructionConfig)
         self.scene: Scene | None = load_scene(self.config.scene) if self.config.scene else None
+        self.types = rclpy_types()
         self.observed_pub = self.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
         self.assemblers: dict[str, CameraFrameAssembler] = {}
-        self.extrinsics: dict[str, object] = {}
+        self.transforms: dict[str, tuple[str, object]] = {}
         self.matcher: FrameMatcher | None = None
+        self.reconstructor: Reconstructor | None = None
+        self.uncalibrated: list[FrameSet] = []  # sets waiting, in order, for their calibration
+        # Reconstruction runs in a worker thread so that the callbacks keep taking images in.
+        self.work: queue.Queue[FrameSet | None] = queue.Queue()
+        self.worker = threading.Thread(target=self._work, name="reconstruction", daemon=True)
+        self.worker.start()
+        self.newest_ns = 0
         self.frame_sets = 0
+        self.published = 0
+        self.seconds = 0.0
         self.t0_ns: int | None = None
         self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, TF_STATIC_QOS)
         if self.config.cameras:
@@ -85,7 +113,8 @@ class ReconstructionNode(Node):
                 guarded(self, info_topic, camera_info_from_msg, self._intrinsics_setter(camera)),
                 SENSOR_QOS)
         tolerance_ns = int(round(self.config.sync_tolerance * 1e9))
-        self.matcher = FrameMatcher(sorted(self.assemblers), tolerance_ns)
+        self.matcher = FrameMatcher(sorted(self.assemblers), tolerance_ns, horizon_ns=None)
+        self.reconstructor = None  # the rig changed: rebuilt at the next frame set
         self.get_logger().info(
             f"subscribed to cameras {', '.join(sorted(self.assemblers))} "
             f"(depth: {', '.join(c for c, a in sorted(self.assemblers.items()) if a.expect_depth) or 'none'})"
@@ -103,19 +132,50 @@ class ReconstructionNode(Node):
     def _intrinsics_setter(self, camera: str):
         def store(intrinsics) -> None:
             self.assemblers[camera].intrinsics = intrinsics
+            self._drain_uncalibrated()
 
         return store
 
     def _on_tf_static(self, msg: TFMessage) -> None:
         for transform in msg.transforms:
             parent, child, matrix = transform_from_msg(transform)
-            self.extrinsics[child] = (parent, matrix)
+            self.transforms[child] = (parent, matrix)
+        self._drain_uncalibrated()
+
+    def _drain_uncalibrated(self) -> None:
+        """Queue the sets that waited for calibration, in order, as far as it allows.
+
+        Warns every BACKLOG_WARNING sets the worker falls behind.
+        """
+        while self.uncalibrated and self._calibrated(self.uncalibrated[0]):
+            self.work.put(self.uncalibrated.pop(0))
+            backlog = self.work.qsize()
+            if backlog and backlog % BACKLOG_WARNING == 0:
+                self.get_logger().warning(
+                    f"reconstruction is {backlog} sets behind the cameras; consider a larger "
+                    "voxel_size or fewer cameras")
+
+    def _work(self) -> None:
+        """The worker thread: reconstruct queued sets until None arrives."""
+        while (frame_set := self.work.get()) is not None:
+            self._reconstruct(frame_set)
+
+    def destroy_node(self) -> None:
+        self.work.put(None)
+        self.worker.join(timeout=5.0)
+        super().destroy_node()
 
     def _on_frame(self, camera_frame) -> None:
         camera, frame = camera_frame
         if frame is None or self.matcher is None:
             return
-        for frame_set in self.matcher.add(camera, frame):
+        self.newest_ns = max(self.newest_ns, frame.stamp_ns)
+        complete = self.matcher.add(camera, frame)
+        # Sets older than a completed one, or than the timeout, will not complete any more.
+        cutoff = self.newest_ns - int(self.config.partial_set_timeout * 1e9)
+        if complete:
+            cutoff = max(cutoff, complete[0].stamp_ns)
+        for frame_set in self.matcher.flush(before_ns=cutoff) + complete:
             self._on_frame_set(frame_set)
 
     def _on_frame_set(self, frame_set: FrameSet) -> None:
@@ -129,13 +189,70 @@ class ReconstructionNode(Node):
             f"stamp {frame_set.stamp_ns} ns, cameras {', '.join(sorted(frame_set.frames))}, "
             f"objects {objects}"
         )
-        if self.scene is not None:
-            declared = {o.id for o in self.scene.objects}
-            unknown = sorted(set(pixels) - declared)
-            if unknown:
-                self.get_logger().warning(
-                    f"frame set {self.frame_sets}: mask ids {unknown} are not declared in the scene"
-                )
+        self.uncalibrated.append(frame_set)
+        if len(self.uncalibrated) > MAX_UNCALIBRATED:
+            dropped = self.uncalibrated.pop(0)
+            self.get_logger().warning(
+                f"stamp {dropped.stamp_ns} ns: not reconstructed: no calibration for "
+                f"{', '.join(self._uncalibrated_cameras(dropped))} (needs CameraInfo and "
+                f"/tf_static {WORLD} -> <cam>_optical)")
+        self._drain_uncalibrated()
+
+    def _reconstruct(self, frame_set: FrameSet) -> None:
+        try:
+            observed = self._reconstructor(frame_set).reconstruct(frame_set)
+        except ValueError as error:
+            self.get_logger().error(f"stamp {frame_set.stamp_ns} ns: not reconstructed: {error}")
+            return
+        for message in observed.warnings:
+            self.get_logger().warning(message)
+        cloud = observed.to_cloud()
+        self.observed_pub.publish(pointcloud_to_msg(
+            self.types, cloud.xyz, cloud.object_id, cloud.stamp_ns, WORLD, cloud.fields))
+        self.published += 1
+        self.seconds += observed.seconds
+        self.get_logger().info(
+            f"published observed objects {self.published} (stamp {frame_set.stamp_ns} ns): "
+            f"{observed.summary()}; mean {self.seconds / self.published * 1e3:.0f} ms per set")
+
+    def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
+        return [name for name in sorted(frame_set.frames)
+                if self.assemblers[name].intrinsics is None or self._world_pose(f"{name}_optical") is None]
+
+    def _calibrated(self, frame_set: FrameSet) -> bool:
+        return not self._uncalibrated_cameras(frame_set)
+
+    def _reconstructor(self, frame_set: FrameSet) -> Reconstructor:
+        """The stage-1 core for every calibrated camera, rebuilt when a set brings a new one."""
+        if self.reconstructor is not None and set(frame_set.frames) <= set(self.reconstructor.cameras):
+            return self.reconstructor
+        cameras = {}
+        for name in sorted(self.assemblers):
+            intrinsics = self.assemblers[name].intrinsics
+            pose = self._world_pose(f"{name}_optical")
+            if intrinsics is not None and pose is not None:
+                cameras[name] = Camera(name, intrinsics, pose)
+        self.reconstructor = Reconstructor(cameras, self.config, self.scene)
+        lattice = self.reconstructor.lattice
+        self.get_logger().info(
+            f"reconstructing with cameras {', '.join(cameras)} on a {lattice.voxel_size * 1e3:.1f} mm "
+            f"lattice of {lattice.shape[0]}x{lattice.shape[1]}x{lattice.shape[2]} voxels from "
+            f"{[round(float(v), 3) for v in lattice.origin]} m")
+        for message in self.reconstructor.notes:
+            self.get_logger().warning(message)
+        return self.reconstructor
+
+    def _world_pose(self, frame: str):
+        """T_world_frame along the chain of static transforms, or None while it is incomplete."""
+        T = None
+        for _ in range(len(self.transforms) + 1):
+            if frame == WORLD:
+                return T
+            if frame not in self.transforms:
+                return None
+            frame, T_parent_child = self.transforms[frame]
+            T = T_parent_child if T is None else T_parent_child @ T
+        return None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -9,10 +9,11 @@ may hide this one. Pixels outside an image are unknown too. Below a known ground
 kept (no camera can see there, so carving alone would keep the object's shadow in the ground).
 What it is not for: separating objects from each other or extracting surfaces (``reconstruct``).
 
-Coarse to fine: cells of 2^l voxels are tested conservatively (a cell is dropped only if its
-whole projected footprint is background in some view, and kept if any footprint pixel may show
-the object), survivors split into 8, down to single voxels tested at their centres. Depth is used
-at the voxel level only.
+Coarse to fine: cells of 2^l voxels are tested conservatively, survivors split into 8, down to
+single voxels tested at their centres. A cell's footprint in a view is the rectangle of pixels
+its voxel centres can fall in (from its projected corners); the cell is dropped only if, in some
+view, that rectangle lies in the image and holds no object pixel, or if no view's rectangle holds
+a pixel of the object. Depth is used at the voxel level only.
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ _LOG = logging.getLogger(__name__)
 
 COARSEST_CELLS = 16
 """Cells per axis, at most, of the coarsest carving level."""
-FOOTPRINT_MARGIN_PX = 1.5
-"""Extra pixels around a coarse cell's projected footprint: the cell centre's and a voxel
-centre's pixel are each rounded (up to sqrt(2)/2 px apart from their projections)."""
+DISTORTION_MARGIN_PX = 1.0
+"""Extra pixels around a footprint under lens distortion (which bends a cell's projected edges)."""
 _CHILDREN = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
+_CORNERS = 2.0 * _CHILDREN - 1.0
 
 
 @dataclass(frozen=True)
@@ -101,28 +102,29 @@ def carve_object(
 def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: np.ndarray,
                 level: int, min_views: int) -> np.ndarray:
     """Conservative test of cells of 2^level voxels: False only where the voxels surely fail."""
-    centres = lattice.centres(cells, level)
-    radius = lattice.voxel_size * (1 << level) * math.sqrt(3.0) / 2.0
+    half = lattice.voxel_size * (1 << level) / 2.0
+    corners = (lattice.centres(cells, level)[:, None, :] + half * _CORNERS[None]).reshape(-1, 3)
     carved = np.zeros(len(cells), dtype=bool)
     seen = np.zeros(len(cells), dtype=np.int32)
     evidence = np.zeros(len(cells), dtype=bool)
     for view in views:
-        uv, z = view.project(centres)
-        row, col, inside = view.pixels(uv)
-        straddles = z <= radius  # the cell reaches the camera plane: no footprint, no decision
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r_px = np.where(straddles, np.inf, view.focal * radius / (z - radius)) + FOOTPRINT_MARGIN_PX
-            u, v = uv[:, 0], uv[:, 1]
-            within = (~straddles & (u - r_px >= -0.5) & (u + r_px <= view.width - 0.5)
-                      & (v - r_px >= -0.5) & (v + r_px <= view.height - 0.5))
-            touches = straddles | ((u + r_px >= -0.5) & (u - r_px <= view.width - 0.5)
-                                   & (v + r_px >= -0.5) & (v - r_px <= view.height - 0.5))
-        carved |= within & inside & (view.distance_to_any(row, col) > r_px)
+        u, v, z = view.project(corners)
+        u, v = u.reshape(-1, 8), v.reshape(-1, 8)
+        # A cell reaching the camera plane has no bounded footprint: it decides nothing.
+        straddles = np.any(z.reshape(-1, 8) <= 0, axis=1)
+        u, v = np.where(straddles[:, None], 0.0, u), np.where(straddles[:, None], 0.0, v)
+        pad = DISTORTION_MARGIN_PX if view.distorted else 0.0
+        c0, r0 = (np.floor(a.min(axis=1) - pad + 0.5).astype(np.int64) for a in (u, v))
+        c1, r1 = (np.floor(a.max(axis=1) + pad + 0.5).astype(np.int64) for a in (u, v))
+        within = ~straddles & (c0 >= 0) & (r0 >= 0) & (c1 < view.width) & (r1 < view.height)
+        touches = straddles | ((c1 >= 0) & (r1 >= 0) & (c0 < view.width) & (r0 < view.height))
+        box = (np.clip(r0, 0, view.height - 1), np.clip(r1, 0, view.height - 1),
+               np.clip(c0, 0, view.width - 1), np.clip(c1, 0, view.width - 1))
+        carved |= within & (view.count_any(*box) == 0)
         seen += touches
-        # The object may be in the footprint: its centre pixel is near an object pixel, or part
-        # of the footprint lies outside the image, or the cell reaches the camera plane.
-        near = inside & (view.distance_to_object(object_id, row, col) <= r_px)
-        evidence |= straddles | (touches & ~within) | near
+        # The object may be there: its pixels are in the footprint, or part of the footprint
+        # lies outside the image, or the cell reaches the camera plane.
+        evidence |= (touches & ~within) | (within & (view.count_object(object_id, *box) > 0))
     return ~carved & (seen >= min_views) & evidence
 
 
@@ -134,8 +136,8 @@ def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels
     seen = np.zeros(len(voxels), dtype=np.int32)
     evidence = np.zeros(len(voxels), dtype=bool)
     for view in views:
-        uv, z = view.project(centres)
-        row, col, inside = view.pixels(uv)
+        u, v, z = view.project(centres)
+        row, col, inside = view.pixels(u, v)
         label = view.labels[row, col]
         empty |= inside & (label == 0)
         if view.depth is not None:

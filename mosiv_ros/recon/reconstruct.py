@@ -225,7 +225,7 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
     centres = lattice.centres(np.stack(np.unravel_index(contested, lattice.shape), axis=1))
     labels = []
     for view in views:
-        row, col, inside = view.pixels(view.project(centres)[0])
+        row, col, inside = view.pixels(*view.project(centres)[:2])
         labels.append(np.where(inside, view.labels[row, col], 0))
     votes = np.full((len(ids), len(contested)), -1)
     distance = np.full((len(ids), len(contested)), np.inf)
