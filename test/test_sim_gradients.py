@@ -2,8 +2,10 @@
 
 Each case fits a ball's rollout to the rollout of other parameters (so the loss is not at a
 minimum) and compares dL/dtheta from ``Simulator.backward`` with (L(theta + h) - L(theta - h)) /
-2h, the substep count held fixed (the CFL bound would otherwise change the discretisation).
-Measured agreement is 0.0-1.5 % for every parameter family; the tolerance is 5 %.
+2h, the substep count held fixed (the CFL bound would otherwise change the discretisation), and
+h = 0.1 % of the value: ground contact (particles projected back onto the floor) makes the loss
+kinked on the scale of a 1 % step, which larger steps average over. Measured agreement is
+0.0-3 % for every parameter family; the tolerance is 5 %.
 """
 
 from __future__ import annotations
@@ -52,8 +54,8 @@ def target_of(family, params, effects=(), **values):
 
 
 @pytest.mark.parametrize(("name", "index", "rel_step"), [
-    ("E", (0, 0), 0.01), ("nu", (0, 0), 0.01), ("ground.friction", (0,), 0.01),
-    ("gravity.g", (0, 2), 0.005), ("density", (0, 0), 0.01),
+    ("E", (0, 0), 0.001), ("nu", (0, 0), 0.001), ("ground.friction", (0,), 0.001),
+    ("gravity.g", (0, 2), 0.001), ("density", (0, 0), 0.001),
 ])
 def test_elastic_and_ground_gradients_match_finite_differences(name, index, rel_step):
     target = target_of("elastic", {"E": 6e4, "nu": 0.2}, **{"gravity.g": (0.5, 0.0, -9.0)})
@@ -76,7 +78,7 @@ def test_elastic_and_ground_gradients_match_finite_differences(name, index, rel_
 def test_material_family_gradients_match_finite_differences(family, fit, true, name):
     target = target_of(family, true)
     sim = falling_ball(family, fit)
-    step = 0.01 * abs(sim.params.get(name)[0, 0])
+    step = 0.001 * abs(sim.params.get(name)[0, 0])
     check(sim, target, name, (0, 0), step)
 
 
@@ -90,7 +92,7 @@ def test_effect_gradients_match_finite_differences(name):
     target = target_of("elastic", {"E": 3e4}, effects(), **{
         "drag.coefficient": 2.0, "damping.viscosity": 10.0, "linear_drag.coefficient": 1.0})
     sim = falling_ball("elastic", {"E": 3e4}, effects())
-    check(sim, target, name, (0, 0), 0.01 * sim.params.get(name)[0, 0])
+    check(sim, target, name, (0, 0), 0.001 * sim.params.get(name)[0, 0])
 
 
 def test_object_friction_gradient_matches_finite_differences():
@@ -150,8 +152,8 @@ def test_initial_velocity_and_volume_gradients_match_finite_differences():
         sim.set_volume(volume + volume_shift * upper)
         return loss(sim, target, substeps)[0]
 
-    numeric_v = (at(v_shift=0.01) - at(v_shift=-0.01)) / 0.02
+    numeric_v = (at(v_shift=0.001) - at(v_shift=-0.001)) / 0.002
     assert grads.v0[0, :, 0].sum() == pytest.approx(numeric_v, rel=0.05)
-    numeric_volume = (at(volume_shift=0.05) - at(volume_shift=-0.05)) / 0.1
+    numeric_volume = (at(volume_shift=0.005) - at(volume_shift=-0.005)) / 0.01
     assert numeric_volume != 0.0
     assert grads.volume[0] @ upper == pytest.approx(numeric_volume, rel=0.05)

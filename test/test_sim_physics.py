@@ -317,3 +317,18 @@ def test_moving_sphere_collider_pushes_material_along_at_its_own_velocity():
     assert x[0] == pytest.approx(0.25, abs=1e-6)
     speed = (x[-1] - x[-5]) / (4 * 0.02)  # after the impact's bounce has died out (frame 15)
     assert speed == pytest.approx(1.0, rel=0.03)
+
+
+@pytest.mark.parametrize(("family", "params"), [
+    ("fluid", {"bulk_modulus": 1e5, "viscosity": 1.0}),
+    ("sand", {"E": 1e5, "density": 1600.0}),
+])
+def test_soft_materials_rest_on_a_ground_plane_that_lies_between_grid_nodes(family, params):
+    # The plane at 0.93 cells above a node layer: the grid condition constrains the layer below
+    # it, where fluid and sand used to settle (0.9 and 0.7 cells under the plane).
+    dx, floor = 0.02, 0.1185
+    sim = scene([box((0.3, 0.3, floor + 0.04), (0.08, 0.08, 0.04), dx / 2)],
+                [ObjectModel("o", family, params)], dx=dx, lo=(0, 0, 0), hi=(0.6, 0.6, 0.3),
+                frame_dt=0.05, ground=Ground(height=floor, friction=0.5))
+    z = sim.rollout(12)[:, 0, :, 2]
+    assert z.min() >= floor - 1e-5

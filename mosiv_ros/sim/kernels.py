@@ -383,6 +383,9 @@ def g2p(
     x: wp.array(dtype=wp.vec3),
     grid_v: wp.array(dtype=wp.vec3),
     obj: wp.array(dtype=int),
+    ground_height: wp.array(dtype=float),
+    ground_normal: wp.array(dtype=float),
+    has_ground: int,
     n_particles: int,
     n_objects: int,
     n_nodes: int,
@@ -394,7 +397,10 @@ def g2p(
     v_out: wp.array(dtype=wp.vec3),
     C_out: wp.array(dtype=wp.mat33),
 ):
-    """Gather velocity and affine field from the particle's own object field; advect."""
+    """Gather velocity and affine field from the particle's own object field and advect.
+
+    The particle is also kept on or above the ground plane.
+    """
     i = wp.tid()
     batch = i // n_particles
     k = obj[i - batch * n_particles]
@@ -416,9 +422,23 @@ def g2p(
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
+    x_new = x[i] + new_v * dt
+    if has_ground != 0:
+        # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
+        # a substep below the plane is put back onto it and loses its velocity into it, so
+        # soft materials (fluid, sand) cannot settle into the floor.
+        n = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, i),
+                                 param(ground_normal, 3 * batch + 1, i),
+                                 param(ground_normal, 3 * batch + 2, i)))
+        phi = wp.dot(n, x_new) - param(ground_height, batch, i)
+        if phi < 0.0:
+            x_new = x_new - n * phi
+            vn = wp.dot(new_v, n)
+            if vn < 0.0:
+                new_v = new_v - n * vn
     v_out[i] = new_v
     C_out[i] = new_C
-    x_out[i] = x[i] + new_v * dt
+    x_out[i] = x_new
 
 
 @wp.kernel

@@ -204,7 +204,8 @@ class Parameters:
             obj = index[1] if spec.per_object else None
             if obj is not None and spec.families and self.families[obj] not in spec.families:
                 continue
-            if not (np.isfinite(value) and spec.lower <= value <= spec.upper):
+            # values are stored in float32: compare with the bounds as float32 stores them
+            if not (np.isfinite(value) and np.float32(spec.lower) <= value <= np.float32(spec.upper)):
                 where = f"object {self.object_names[obj]!r} ({self.families[obj]})" if obj is not None else ""
                 batch = f"parameter set {index[0]}" if self.n_batch > 1 else ""
                 context = ", ".join(s for s in (where, batch) if s)

@@ -456,7 +456,8 @@ class Simulator:
             row, len(self.config.colliders), K, G, dims, lo, self.dx, dt,
         ], outputs=[grid.v])
         wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
-            src.x, grid.v, self.obj, N, K, G, dims, lo, self.dx, dt,
+            src.x, grid.v, self.obj, p["ground.height"], p["ground.normal"],
+            int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
         ], outputs=[dst.x, dst.v, dst.C])
 
     def _check(self, state: _State, frame: int, dt: float) -> None:
@@ -507,21 +508,25 @@ class Simulator:
         """The particle state at the end of the last rollout."""
         if self._final is None:
             raise RuntimeError("last_state() needs a preceding rollout()")
-        B, N = self.n_batch, self.n_particles
-        x, v, C, b = (a.numpy().astype(np.float64) for a in self._final.arrays)
-        return SimState(x.reshape(B, N, 3), v.reshape(B, N, 3), C.reshape(B, N, 3, 3),
-                        b.reshape(B, N, 3, 3))
+        return _to_sim_state(self._final, self.n_batch, self.n_particles)
+
+    def frame_state(self, frame: int) -> SimState:
+        """The state at ``frame`` of the last ``grad=True`` rollout (from its checkpoints)."""
+        if self._record is None:
+            raise RuntimeError("frame_state() needs a preceding rollout(..., grad=True)")
+        return _to_sim_state(self._record["checkpoints"][frame], self.n_batch, self.n_particles)
 
     def rollout(self, n_frames: int, *, grad: bool = False, check: bool = True,
                 substeps: int | None = None, initial: SimState | None = None,
-                progress=None) -> np.ndarray:
+                start_frame: int = 0, progress=None) -> np.ndarray:
         """Advance ``n_frames`` frames; positions (n_frames + 1, B, N, 3), frame 0 the start.
 
         ``grad=True`` keeps per-frame checkpoints for ``backward``. ``substeps`` forces the
         substeps per frame (see ``time_step``). ``initial`` starts from a given state (e.g. the
         ``last_state()`` of an earlier rollout, or positions resynchronised to observations);
-        by default the rollout starts at rest deformation from the particles and ``v0``. Time
-        (for colliders) starts at 0 either way. ``progress(frame)`` is called after each frame.
+        by default the rollout starts at rest deformation from the particles and ``v0``.
+        ``start_frame`` is the frame the rollout starts at on the scene's clock (colliders move
+        along their trajectories from there). ``progress(frame)`` is called after each frame.
         """
         self.params.validate()
         n_sub, dt = self.time_step(substeps)
@@ -540,19 +545,20 @@ class Simulator:
             checkpoints.append(_clone(states[0]))
         current = 0
         for frame in range(n_frames):
-            self._collider_poses(frame, n_sub, dt)
+            self._collider_poses(start_frame + frame, n_sub, dt)
             self.params.replicate()
             for s in range(n_sub):
                 self._substep(states[current], states[1 - current], grid, s, dt)
                 current = 1 - current
             if check:
-                self._check(states[current], frame + 1, dt)
+                self._check(states[current], start_frame + frame + 1, dt)
             out[frame + 1] = states[current].x.numpy().reshape(B, N, 3)
             if grad:
                 checkpoints.append(_clone(states[current]))
             if progress is not None:
                 progress(frame + 1)
-        self._record = {"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt} if grad else None
+        self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt,
+                         "start_frame": start_frame} if grad else None)
         self._final = states[current]
         _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
                    n_frames, n_sub, dt, N, B)
@@ -565,7 +571,8 @@ class Simulator:
         """
         if self._record is None:
             raise RuntimeError("backward() needs a preceding rollout(..., grad=True)")
-        checkpoints, n_sub, dt = (self._record[k] for k in ("checkpoints", "n_sub", "dt"))
+        checkpoints, n_sub, dt, start = (self._record[k]
+                                         for k in ("checkpoints", "n_sub", "dt", "start_frame"))
         n_frames = len(checkpoints) - 1
         B, N = self.n_batch, self.n_particles
         dL_dx = np.asarray(dL_dx, dtype=np.float32)
@@ -582,7 +589,7 @@ class Simulator:
                     array.grad.zero_()
             self.params.zero_replica_grad()
             states[0].copy_from(checkpoints[frame])
-            self._collider_poses(frame, n_sub, dt)
+            self._collider_poses(start + frame, n_sub, dt)
             tape = wp.Tape()
             with tape:
                 self.params.replicate()
@@ -614,6 +621,13 @@ class Simulator:
                        self.device, True) for _ in range(n_sub)],
             )
         return self._tape_buffers
+
+
+def _to_sim_state(state: _State, n_batch: int, n_particles: int) -> SimState:
+    x, v, C, b = (a.numpy().astype(np.float64) for a in state.arrays)
+    B, N = n_batch, n_particles
+    return SimState(x.reshape(B, N, 3), v.reshape(B, N, 3), C.reshape(B, N, 3, 3),
+                    b.reshape(B, N, 3, 3))
 
 
 def _clone(state: _State) -> _State:
