@@ -8,9 +8,12 @@ two one-sided mean nearest-neighbour distances, ``mosiv_ros.recon.evaluation``) 
 object's occupied voxel centres and its ground-truth particles, and as a fraction of the object's
 size (largest edge of the particles' bounding box plus one particle). ``floor`` is the same
 distance for a perfect reconstruction: the voxels whose centres lie in the cubes the ground-truth
-particles stand for. Then lift the first complete frame and print each object's particle volume
-against the ground-truth volume, the lattice cells shared between objects (must be 0) and the
-milliseconds per frame of both stages on this machine.
+particles stand for. ``nearer other`` is the largest fraction, over frames, of an object's voxels
+that lie nearer another object's particles than its own (separation at contact). Then lift the
+first complete frame and print each object's particle volume against the ground-truth volume and
+against the volume the recorder renders (the union of its splat balls above the floor: what the
+cameras can see), the lattice cells shared between objects (must be 0) and the milliseconds per
+frame of both stages on this machine.
 """
 
 from __future__ import annotations
@@ -21,14 +24,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
 from mosiv_ros.recon import reconstruct_recording
 from mosiv_ros.recon.carving import Lattice
-from mosiv_ros.recon.evaluation import chamfer
-from mosiv_ros.synth.ground_truth import read_ground_truth_particles
+from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
+from mosiv_ros.recon.reconstruct import Reconstructor
+from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
 
 
 def perfect_voxels(truth: np.ndarray, side: float, lattice: Lattice) -> np.ndarray:
@@ -37,8 +42,6 @@ def perfect_voxels(truth: np.ndarray, side: float, lattice: Lattice) -> np.ndarr
     hi = np.ceil((truth.max(axis=0) + side - lattice.origin) / lattice.voxel_size).astype(int)
     axes = [np.arange(lo[a], hi[a]) for a in range(3)]
     centres = lattice.centres(np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3))
-    from scipy.spatial import cKDTree
-
     distance, _ = cKDTree(truth).query(centres, p=np.inf)
     return centres[distance <= side / 2]
 
@@ -53,21 +56,26 @@ def bag_figures(bag: Path, voxel_size: float) -> dict:
         start = time.perf_counter()
         frames = reconstruct_recording(recording, config)
         result["ms_per_frame"][f"reconstruct depth={use_depth}"] = (time.perf_counter() - start) / len(frames) * 1e3
-        from mosiv_ros.recon.reconstruct import Reconstructor
-
         lattice = Reconstructor(recording.cameras, config, recording.scene).lattice
         for frame in frames:
             index = int(np.argmin(np.abs(truth.stamps_ns - frame.stamp_ns)))
+            trees = {i: cKDTree(truth.of_object(i)[index]) for i in recording.scene.ids}
             for object_id in recording.scene.ids:
                 points = truth.of_object(object_id)[index].astype(np.float64)
                 size = float(np.max(points.max(axis=0) - points.min(axis=0))) + side
                 estimate = frame.objects.get(object_id)
                 cd = chamfer(estimate.occupancy, points)[0] if estimate is not None else float("inf")
+                nearer = 0.0
+                if estimate is not None and len(trees) > 1:
+                    own = trees[object_id].query(estimate.occupancy)[0]
+                    other = np.min([t.query(estimate.occupancy)[0] for i, t in trees.items() if i != object_id],
+                                   axis=0)
+                    nearer = float(np.mean(other < own))
                 row = result["objects"].setdefault(str(object_id), {}).setdefault(
                     f"depth={use_depth}", [])
                 floor = chamfer(perfect_voxels(points, side, lattice), points)[0]
                 row.append({"frame": index, "cd_mm": cd * 1e3, "relative": cd / size,
-                            "floor_mm": floor * 1e3, "warnings": len(frame.warnings)})
+                            "floor_mm": floor * 1e3, "nearer_other": nearer, "warnings": len(frame.warnings)})
         if use_depth:
             start = time.perf_counter()
             lifted = lift_first_complete(frames, LiftingConfig(), recording.scene)
@@ -75,10 +83,14 @@ def bag_figures(bag: Path, voxel_size: float) -> dict:
             first = int(np.argmin(np.abs(truth.stamps_ns - lifted.stamp_ns)))
             cells = np.floor(lifted.x / LiftingConfig().particle_spacing).astype(np.int64)
             _, counts = np.unique(cells, axis=0, return_counts=True)
+            splat = float(read_ground_truth(bag)["render"]["splat_radius"])
+            floor = (recording.scene.ground or {}).get("height")
             result["lift"] = {"shared_cells": int((counts > 1).sum()), "frame": first, "objects": {
                 str(i): {"particles": int((lifted.object_id == i).sum()),
                          "volume_cm3": lifted.object_volume(i) * 1e6,
-                         "true_cm3": float(truth.volume[truth.object_id == i].sum()) * 1e6}
+                         "true_cm3": float(truth.volume[truth.object_id == i].sum()) * 1e6,
+                         "rendered_cm3": union_of_balls_volume(
+                             truth.of_object(i)[first].astype(np.float64), splat, floor) * 1e6}
                 for i in lifted.object_ids}}
     return result
 
@@ -90,14 +102,17 @@ def report(result: dict) -> None:
             cd = np.array([r["cd_mm"] for r in rows])
             rel = np.array([r["relative"] for r in rows])
             floor = np.array([r["floor_mm"] for r in rows])
+            nearer = max(r["nearer_other"] for r in rows)
             print(f"  object {object_id} {run}: CD mm mean {cd.mean():.2f} max {cd.max():.2f} "
                   f"(relative mean {rel.mean() * 100:.1f}% max {rel.max() * 100:.1f}%), "
-                  f"floor mean {floor.mean():.2f} mm")
+                  f"floor mean {floor.mean():.2f} mm, nearer other max {nearer * 100:.1f}%")
             print("    per frame CD mm: " + " ".join(f"{v:.1f}" for v in cd))
     lifted = result.get("lift", {})
     for object_id, row in lifted.get("objects", {}).items():
         print(f"  lifted object {object_id}: {row['particles']} particles, {row['volume_cm3']:.1f} cm^3 "
-              f"vs true {row['true_cm3']:.1f} cm^3 ({(row['volume_cm3'] / row['true_cm3'] - 1) * 100:+.1f}%)")
+              f"vs true {row['true_cm3']:.1f} cm^3 ({(row['volume_cm3'] / row['true_cm3'] - 1) * 100:+.1f}%), "
+              f"vs rendered {row['rendered_cm3']:.1f} cm^3 "
+              f"({(row['volume_cm3'] / row['rendered_cm3'] - 1) * 100:+.1f}%)")
     print(f"  lattice cells shared between objects: {lifted.get('shared_cells')}")
     print("  ms per frame: " + ", ".join(f"{k} {v:.0f}" for k, v in result["ms_per_frame"].items()))
 

@@ -67,3 +67,28 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
     np.testing.assert_array_equal(got.xyz, want.xyz)
     for name, values in want.fields.items():
         np.testing.assert_array_equal(got.fields[name], values, err_msg=name)
+
+
+def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stops_it(tmp_path, listener):
+    recording = sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72)
+    recording.cameras["cam2"].frames = recording.cameras["cam2"].frames[:2]
+    bag = write_recording(recording, tmp_path / "lossy")
+    listener.subscribe(PointCloud2, "/mosiv/observed_objects", STREAM)
+    with Graph([NodeSpec("reconstruction_node", {"scene": str(bag), **RECON})], sink=None) as graph:
+        node = graph.nodes["reconstruction_node"]
+        node.wait_for_line("reconstruction_node ready", timeout=60)
+        assert listener.wait_for(lambda: listener.node.count_publishers("/mosiv/observed_objects") > 0, 10)
+        replay_params = {"bag": str(bag), "rate": 1.0, "wait_for_subscribers": 1, "linger": 0.5}
+        with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
+            assert replay.nodes["bag_replay_node"].process.wait(60) == 0
+        received = listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == FRAMES, 30)
+        assert node.process.poll() is None
+        lines = list(node.lines)
+    assert received, "\n".join(lines[-30:])
+    assert sum("no frame from camera(s) cam2" in line for line in lines) == FRAMES - 2
+    frames = reconstruct_recording(read_recording(bag), ReconstructionConfig(**RECON))
+    for msg, frame in zip(listener.received["/mosiv/observed_objects"], frames, strict=True):
+        got, want = pointcloud_from_msg(msg), frame.to_cloud()
+        assert set(np.unique(got.object_id).tolist()) == {1, 2, 3}
+        np.testing.assert_array_equal(got.xyz, want.xyz)
+

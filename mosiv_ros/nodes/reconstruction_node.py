@@ -9,7 +9,8 @@ the centre of, 0 for a surface point), one message per frame set stamped with th
 
 A frame set still lacking some cameras is reconstructed from the others (with a warning) once a
 later set completes or ``partial_set_timeout`` has passed, so a camera that stops publishing
-degrades the result instead of stopping it. Sets that arrive before their cameras' CameraInfo and
+degrades the result instead of stopping it (and when the stream goes quiet for that long, the sets
+still pending are reconstructed too). Sets that arrive before their cameras' CameraInfo and
 ``/tf_static`` wait for them. Reconstruction runs in a worker thread, in stamp order, so that
 slow frames do not make the image callbacks drop messages; a growing backlog is reported.
 """
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -74,6 +76,8 @@ class ReconstructionNode(Node):
         self.published = 0
         self.seconds = 0.0
         self.t0_ns: int | None = None
+        self.last_frame_time = time.monotonic()
+        self.create_timer(0.1, self._flush_when_idle)
         self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, TF_STATIC_QOS)
         if self.config.cameras:
             self._add_cameras(self.config.cameras)
@@ -169,6 +173,7 @@ class ReconstructionNode(Node):
         camera, frame = camera_frame
         if frame is None or self.matcher is None:
             return
+        self.last_frame_time = time.monotonic()
         self.newest_ns = max(self.newest_ns, frame.stamp_ns)
         complete = self.matcher.add(camera, frame)
         # Sets older than a completed one, or than the timeout, will not complete any more.
@@ -177,6 +182,18 @@ class ReconstructionNode(Node):
             cutoff = max(cutoff, complete[0].stamp_ns)
         for frame_set in self.matcher.flush(before_ns=cutoff) + complete:
             self._on_frame_set(frame_set)
+
+    def _flush_when_idle(self) -> None:
+        """Timer: reconstruct the pending partial sets once the stream went quiet.
+
+        After partial_set_timeout seconds without a frame, the sets still lacking a camera (the
+        last ones of a stream that lost a camera) will not complete.
+        """
+        if self.matcher is None or not self.matcher.pending:
+            return
+        if time.monotonic() - self.last_frame_time > self.config.partial_set_timeout:
+            for frame_set in self.matcher.flush():
+                self._on_frame_set(frame_set)
 
     def _on_frame_set(self, frame_set: FrameSet) -> None:
         self.frame_sets += 1

@@ -124,6 +124,10 @@ class Reconstructor:
 
     def _resolution_notes(self, centre: np.ndarray) -> list[str]:
         notes = []
+        if len(self.cameras) < 3:
+            notes.append(f"only {len(self.cameras)} camera(s) ({', '.join(sorted(self.cameras))}): "
+                         "silhouettes bound each object loosely; expect larger volumes, above all "
+                         "without depth")
         for name, camera in sorted(self.cameras.items()):
             distance = float(np.linalg.norm(camera.T_world_optical[:3, 3] - centre))
             footprint = distance / float(max(camera.intrinsics.K[0, 0], camera.intrinsics.K[1, 1]))
@@ -160,8 +164,10 @@ class Reconstructor:
                 continue
             cut = [v.camera for v in views if object_id in v.ids and v.touches_border(object_id)]
             if cut:
+                beyond = ("is not reconstructed" if min_views == len(views)
+                          else f"is kept only where {min_views} cameras see it")
                 warnings.append(f"{where}: object {self._name(object_id)} reaches the image border "
-                                f"of {', '.join(cut)}; its volume there is bounded by the other views")
+                                f"of {', '.join(cut)}; its part beyond the border {beyond}")
             carved[object_id] = carve_object(views, object_id, self.lattice, min_views=min_views,
                                              depth_tolerance=self.config.depth_tolerance,
                                              ground=self.ground)
