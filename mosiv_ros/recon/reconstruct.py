@@ -119,8 +119,8 @@ class Reconstructor:
         else:
             lo, hi = look_at_box(self.cameras.values())
         self.lattice = Lattice.covering(lo, hi, config.voxel_size)
+        # Warnings about the rig and the settings, for the caller to report once.
         self.notes = self._resolution_notes((np.asarray(lo) + np.asarray(hi)) / 2)
-        """Warnings about the settings, for the caller to report once."""
 
     def _resolution_notes(self, centre: np.ndarray) -> list[str]:
         notes = []
