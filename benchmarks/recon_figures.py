@@ -1,8 +1,10 @@
 """Stage 1-2 figures on synthetic recordings: per-object Chamfer per frame, lifted volumes, timing.
 
     python benchmarks/recon_figures.py /path/to/bag [...]  [--out figures.json] [--voxel-size 0.005]
+    python benchmarks/recon_figures.py --shapes        # the analytic shapes scene, 4 cameras 160x120
 
-For every bag with the recorder's ``ground_truth_particles.npz`` sidecar, reconstruct every frame
+For every bag with the recorder's ``ground_truth_particles.npz`` sidecar (or the analytic spheres
+of ``mosiv_ros.synth.shapes``, as 3 mm lattice particles filling each ball), reconstruct every frame
 with and without depth and print, per object and frame, the Chamfer distance (mm; the mean of the
 two one-sided mean nearest-neighbour distances, ``mosiv_ros.recon.evaluation``) between the
 object's occupied voxel centres and its ground-truth particles, and as a fraction of the object's
@@ -12,8 +14,8 @@ particles stand for. ``nearer other`` is the largest fraction, over frames, of a
 that lie nearer another object's particles than its own (separation at contact). Then lift the
 first complete frame and print each object's particle volume against the ground-truth volume and
 against the volume the recorder renders (the union of its splat balls above the floor: what the
-cameras can see), the lattice cells shared between objects (must be 0) and the milliseconds per
-frame of both stages on this machine.
+cameras can see; the balls themselves for the shapes scene), the lattice cells shared between
+objects (must be 0) and the milliseconds per frame of both stages on this machine.
 """
 
 from __future__ import annotations
@@ -33,7 +35,10 @@ from mosiv_ros.recon import reconstruct_recording
 from mosiv_ros.recon.carving import Lattice
 from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
 from mosiv_ros.recon.reconstruct import Reconstructor
-from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
+from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
+from mosiv_ros.synth.shapes import START_NS, make_shapes_recording, shapes_spheres
+
+SHAPES_SPACING = 0.003
 
 
 def perfect_voxels(truth: np.ndarray, side: float, lattice: Lattice) -> np.ndarray:
@@ -46,11 +51,38 @@ def perfect_voxels(truth: np.ndarray, side: float, lattice: Lattice) -> np.ndarr
     return centres[distance <= side / 2]
 
 
+def shapes_truth(recording) -> GroundTruthParticles:
+    """The shapes scene's balls as lattice particles at every frame of ``recording``."""
+    stamps = np.array(next(iter(recording.cameras.values())).stamps_ns)
+    times = (stamps - START_NS) * 1e-9
+    positions, ids = [], []
+    for sphere in shapes_spheres():
+        n = int(np.ceil(sphere.radius / SHAPES_SPACING))
+        axis = np.arange(-n, n + 1) * SHAPES_SPACING
+        offsets = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+        offsets = offsets[np.linalg.norm(offsets, axis=1) <= sphere.radius]
+        positions.append(np.stack([sphere.centre(t) + offsets for t in times]))
+        ids.append(np.full(len(offsets), sphere.id))
+    object_id = np.concatenate(ids)
+    return GroundTruthParticles(np.concatenate(positions, axis=1), object_id,
+                                np.full(len(object_id), SHAPES_SPACING**3), stamps, times)
+
+
 def bag_figures(bag: Path, voxel_size: float) -> dict:
-    recording = read_recording(bag)
-    truth = read_ground_truth_particles(bag)
+    return figures(str(bag), read_recording(bag), read_ground_truth_particles(bag), voxel_size,
+                   float(read_ground_truth(bag)["render"]["splat_radius"]))
+
+
+def shapes_figures(voxel_size: float) -> dict:
+    recording = make_shapes_recording(n_frames=10, n_cameras=4, width=160, height=120)
+    return figures("shapes (4 cameras, 160x120)", recording, shapes_truth(recording), voxel_size, None)
+
+
+def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float,
+            splat: float | None) -> dict:
+    """Every figure of one recording; ``splat``: the recorder's splat radius (None: exact shapes)."""
     side = float(np.cbrt(np.median(truth.volume)))
-    result: dict = {"bag": str(bag), "voxel_size": voxel_size, "objects": {}, "ms_per_frame": {}}
+    result: dict = {"bag": name, "voxel_size": voxel_size, "objects": {}, "ms_per_frame": {}}
     for use_depth in (False, True):
         config = ReconstructionConfig(voxel_size=voxel_size, use_depth=use_depth)
         start = time.perf_counter()
@@ -83,16 +115,21 @@ def bag_figures(bag: Path, voxel_size: float) -> dict:
             first = int(np.argmin(np.abs(truth.stamps_ns - lifted.stamp_ns)))
             cells = np.floor(lifted.x / LiftingConfig().particle_spacing).astype(np.int64)
             _, counts = np.unique(cells, axis=0, return_counts=True)
-            splat = float(read_ground_truth(bag)["render"]["splat_radius"])
             floor = (recording.scene.ground or {}).get("height")
             result["lift"] = {"shared_cells": int((counts > 1).sum()), "frame": first, "objects": {
                 str(i): {"particles": int((lifted.object_id == i).sum()),
                          "volume_cm3": lifted.object_volume(i) * 1e6,
                          "true_cm3": float(truth.volume[truth.object_id == i].sum()) * 1e6,
-                         "rendered_cm3": union_of_balls_volume(
-                             truth.of_object(i)[first].astype(np.float64), splat, floor) * 1e6}
+                         "rendered_cm3": (union_of_balls_volume(
+                             truth.of_object(i)[first].astype(np.float64), splat, floor) * 1e6 if splat
+                             else _ball_volume(i) * 1e6)}
                 for i in lifted.object_ids}}
     return result
+
+
+def _ball_volume(object_id: int) -> float:
+    radius = next(s.radius for s in shapes_spheres() if s.id == object_id)
+    return 4.0 / 3.0 * np.pi * radius**3
 
 
 def report(result: dict) -> None:
@@ -119,11 +156,14 @@ def report(result: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("bags", nargs="+", type=Path)
+    parser.add_argument("bags", nargs="*", type=Path)
+    parser.add_argument("--shapes", action="store_true", help="also the analytic shapes scene")
     parser.add_argument("--voxel-size", type=float, default=ReconstructionConfig().voxel_size)
     parser.add_argument("--out", type=Path, default=None, help="write every figure as JSON here")
     args = parser.parse_args()
     results = [bag_figures(bag, args.voxel_size) for bag in args.bags]
+    if args.shapes:
+        results.append(shapes_figures(args.voxel_size))
     for result in results:
         report(result)
     if args.out:
