@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from mosiv_ros.sim import Ground, ObjectModel, Particles, SimConfig, Simulator
 from mosiv_ros.sim.sampling import box, sphere
@@ -38,16 +37,6 @@ def slope_acceleration(track: np.ndarray, frame_dt: float, settle: float = 0.06)
     t = np.arange(len(track)) * frame_dt
     keep = t >= settle
     return float(2.0 * np.polyfit(t[keep], track[keep], 2)[0])
-
-
-def chamfer(x: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
-    """Symmetric Chamfer distance (mean squared nearest distances both ways) and dL/dx."""
-    dist_x, nearest_y = cKDTree(y).query(x)
-    dist_y, nearest_x = cKDTree(x).query(y)
-    loss = float(np.mean(dist_x**2) + np.mean(dist_y**2))
-    grad = 2.0 * (x - y[nearest_y]) / len(x)
-    np.add.at(grad, nearest_x, -2.0 * (y - x[nearest_x]) / len(y))
-    return loss, grad
 
 
 def falling_ball(family: str, params: dict, effects=(), dx: float = 0.02) -> Simulator:

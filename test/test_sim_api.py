@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from sim_scenes import chamfer, falling_ball, scene
+from sim_scenes import falling_ball, scene
 
+from mosiv_ros.identify.losses import chamfer
 from mosiv_ros.sim import (
     Effect,
     ObjectModel,

@@ -1,0 +1,410 @@
+"""Per-object material identification by differentiable MPM rollouts (MOSIV stage 3).
+
+``Identifier(problem, settings).run()`` fits the free parameters of a ``FitProblem`` (per-object
+material parameters, ground and effect parameters, and each object's initial linear and angular
+velocity) to its observations with Adam on the simulator's gradients:
+
+- coordinates: each parameter moves in ``identify.coordinates`` (log for moduli, bounded logits
+  for nu and friction), velocities in m/s and rad/s;
+- initial velocities start from the observed centroid motion of the first two frames;
+- before Adam, a gradient-free coordinate search: ``search_rounds`` passes over the free
+  parameters, each set in turn to the best of ``search_points`` values around its current
+  coordinate (half-width ``search_decades`` decades for scale parameters, 2 logit units
+  otherwise, shrinking 3x per round), all values simulated in one batched rollout of the first
+  ``search_frames`` frames (0 = all);
+- horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
+  windows of h frames, up to ``WINDOWS`` of them spread over the sequence; the last stage (0)
+  fits the whole sequence from frame 0;
+- resynchronisation (MOSIV): a window that starts at frame s > 0 starts from the state of an
+  anchor rollout with the current parameters at s, each object's particles shifted (and their
+  velocities offset) so that its centroid position and velocity match the observations at s,
+  which stops drift from one window leaking into the next. The anchor is refreshed every
+  ``resync_every`` iterations;
+- a diverging rollout does not end the fit: the step is undone and the learning rate halved;
+- with a checkpoint directory the state is written after every iteration and a rerun of the
+  same problem resumes from it.
+
+What it is for: the fit. What it is not for: choosing a family (``identify.family``),
+uncertainty (``identify.uncertainty``), or reading bags and nodes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_ros.identify.coordinates import Coordinate
+from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
+from mosiv_ros.identify.observations import Observations
+from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
+from mosiv_ros.sim.errors import SimulationDiverged
+from mosiv_ros.sim.materials import FAMILY_PARAMS
+
+_LOG = logging.getLogger(__name__)
+
+WINDOWS = 1
+CHECKPOINT_FILE = "identify_checkpoint.npz"
+
+
+@dataclass
+class FitSettings:
+    """How a fit runs. ``curriculum`` lists window lengths in frames, 0 = the whole sequence."""
+
+    curriculum: list[int] = field(default_factory=lambda: [5, 10, 15, 25, 0])
+    iterations: int = 40
+    learning_rate: float = 0.05
+    velocity_learning_rate: float = 0.01
+    chamfer_weight: float = 1.0
+    silhouette_weight: float = 0.0
+    per_object_loss: bool = True
+    fit_velocity: bool = True
+    resync_every: int = 10
+    checkpoint_dir: str = ""
+    splat_radius: float = 0.005
+    search_points: int = 5
+    search_rounds: int = 3
+    search_decades: float = 1.0
+    search_frames: int = 0
+
+
+@dataclass
+class FitProblem:
+    """What to fit: a scene's objects, particles at the first observed frame, observations.
+
+    ``free`` names the parameters to fit: a per-object material parameter name applies to every
+    object whose family uses it; other names (``ground.friction``, ``drag.coefficient``) are
+    fitted as they are. Every other parameter keeps its value in the simulator.
+    """
+
+    objects: list[ObjectModel]
+    particles: Particles
+    observations: Observations
+    sim_config: SimConfig
+    free: list[str]
+
+
+@dataclass
+class Entry:
+    """One free scalar: parameter ``name`` at ``index`` in its (batch, ...) array."""
+
+    name: str
+    index: tuple[int, ...]
+    coordinate: Coordinate
+    label: str
+
+
+@dataclass
+class FitResult:
+    """What a fit found.
+
+    Fitted values by parameter name (shaped like ``Parameters.get`` without the batch), the
+    free entries and their coordinates, initial velocities per object, the loss history.
+    """
+
+    values: dict[str, np.ndarray]
+    entries: list[Entry]
+    u: np.ndarray
+    velocity: np.ndarray  # (K, 6): linear m/s, angular rad/s
+    loss: float
+    per_object_loss: np.ndarray
+    history: list[dict] = field(default_factory=list)
+    failures: int = 0
+
+
+class Identifier:
+    """Fits a ``FitProblem``; see the module docstring."""
+
+    def __init__(self, problem: FitProblem, settings: FitSettings | None = None,
+                 progress: Callable[[dict], None] | None = None) -> None:
+        self.problem = problem
+        self.settings = settings or FitSettings()
+        self.progress = progress
+        obs = problem.observations
+        if obs.n_objects != len(problem.objects):
+            raise ValueError(f"observations cover {obs.n_objects} objects, the problem has "
+                             f"{len(problem.objects)}")
+        if obs.n_frames < 2:
+            raise ValueError(f"need at least 2 observed frames, got {obs.n_frames}")
+        if abs(obs.frame_dt - problem.sim_config.frame_dt) > 1e-9:
+            raise ValueError(f"observation frame_dt {obs.frame_dt} differs from the simulator's "
+                             f"{problem.sim_config.frame_dt}")
+        self.sim = Simulator(problem.objects, problem.particles, problem.sim_config)
+        self.entries = self._entries(problem.free)
+        self.index = problem.particles.object_index
+        self.centre0 = np.stack([problem.particles.x[self.index == k].mean(axis=0)
+                                 for k in range(len(problem.objects))])
+        self.observed_centroids = obs.centroids()
+
+    # --- parameters <-> optimisation vector --------------------------------------------------
+
+    def _entries(self, free: list[str]) -> list[Entry]:
+        entries = []
+        params = self.sim.params
+        for name in free:
+            spec = params.spec(name)
+            coordinate = Coordinate.for_spec(spec)
+            if spec.per_object:
+                for k, obj in enumerate(self.problem.objects):
+                    if name in FAMILY_PARAMS[obj.family]:
+                        entries.append(Entry(name, (0, k), coordinate, f"{obj.name}.{name}"))
+            elif spec.size > 1:
+                entries += [Entry(name, (0, c), coordinate, f"{name}[{c}]") for c in range(spec.size)]
+            else:
+                entries.append(Entry(name, (0,), coordinate, name))
+        if not entries:
+            raise ValueError(f"nothing to fit: none of {free} applies to these objects")
+        return entries
+
+    def _pack(self) -> np.ndarray:
+        u = [e.coordinate.to_u(self.sim.params.get(e.name)[e.index]) for e in self.entries]
+        return np.asarray(u, dtype=np.float64)
+
+    def _apply(self, u: np.ndarray, velocity: np.ndarray) -> None:
+        for entry, value in zip(self.entries, u, strict=True):
+            current = self.sim.params.get(entry.name)
+            current[entry.index] = entry.coordinate.to_theta(value)
+            self.sim.params.set(entry.name, current)
+        linear, angular = velocity[self.index, :3], velocity[self.index, 3:]
+        self.sim.set_initial_velocity(linear + np.cross(angular, self.problem.particles.x
+                                                        - self.centre0[self.index]))
+
+    # --- one window --------------------------------------------------------------------------
+
+    def _window_loss(self, start: int, length: int, initial: SimState | None,
+                     grad: bool) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Loss over frames start+1..start+length, dL/du, dL/dvelocity (K, 6), per-object losses."""
+        obs, s = self.problem.observations, self.settings
+        traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
+        dL = np.zeros(traj.shape, dtype=np.float64)
+        total, per = 0.0, np.zeros(obs.n_objects)
+        for f in range(1, length + 1):
+            x = traj[f, 0].astype(np.float64)
+            value, g, per_f = geometry_loss(x, self.index, obs.points[start + f], s.per_object_loss)
+            total += s.chamfer_weight * value
+            dL[f, 0] = s.chamfer_weight * g
+            per += np.nan_to_num(per_f)
+            if s.silhouette_weight > 0 and obs.masks:
+                value, g = silhouette_loss(x, self.index, obs.object_ids, obs.views,
+                                           obs.masks[start + f], s.splat_radius, s.per_object_loss)
+                total += s.silhouette_weight * value
+                dL[f, 0] += s.silhouette_weight * g
+        total, dL, per = total / length, dL / length, per / length
+        if not grad:
+            return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
+        grads = self.sim.backward(dL)
+        u = self._pack()
+        du = np.array([grads.params[e.name][e.index] * e.coordinate.dtheta_du(u[i])
+                       for i, e in enumerate(self.entries)])
+        dv = np.zeros((obs.n_objects, 6))
+        if initial is None:  # velocities are parameters only of windows from frame 0
+            g0 = grads.v0[0]
+            r = self.problem.particles.x - self.centre0[self.index]
+            for k in range(obs.n_objects):
+                mine = self.index == k
+                dv[k, :3] = g0[mine].sum(axis=0)
+                dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
+        return total, du, dv, per
+
+    def _resynced(self, anchor: dict[int, SimState], start: int) -> SimState:
+        """The anchor state at ``start`` with each object's centroid moved onto the observed one."""
+        state = anchor[start]
+        x, v = state.x.copy(), state.v.copy()
+        c_obs = self.observed_centroids
+        dt = self.problem.observations.frame_dt
+        for k in range(self.problem.observations.n_objects):
+            mine = self.index == k
+            if np.isnan(c_obs[start, k, 0]):
+                continue
+            x[0, mine] += c_obs[start, k] - x[0, mine].mean(axis=0)
+            if start + 1 < len(c_obs) and not np.isnan(c_obs[start + 1, k, 0]):
+                v[0, mine] += (c_obs[start + 1, k] - c_obs[start, k]) / dt - v[0, mine].mean(axis=0)
+        return SimState(x, v, state.C, state.b)
+
+    def _anchor(self, starts: list[int]) -> dict[int, SimState]:
+        last = max(starts)
+        if last == 0:
+            return {}
+        self.sim.rollout(last, grad=True)
+        return {s: self.sim.frame_state(s) for s in starts if s > 0}
+
+    # --- gradient-free initialisation -------------------------------------------------------
+
+    def _search(self, velocity: np.ndarray) -> np.ndarray:
+        """Coordinate search over every free entry (see the module docstring); return u."""
+        s, obs = self.settings, self.problem.observations
+        u = self._pack()
+        if s.search_points < 2 or s.search_rounds < 1:
+            return u
+        frames = min(s.search_frames or obs.n_frames - 1, obs.n_frames - 1)
+        batch = Simulator(self.problem.objects, self.problem.particles, self.problem.sim_config,
+                          n_batch=s.search_points)
+        for round_ in range(s.search_rounds):
+            for i, entry in enumerate(self.entries):
+                half = (s.search_decades * np.log(10.0) if entry.coordinate.kind == "log" else 2.0)
+                grid = u[i] + half / 3**round_ * np.linspace(-1.0, 1.0, s.search_points)
+                self._apply(u, velocity)
+                batch.set_initial_velocity(self.sim.v0.numpy()[: self.sim.n_particles])
+                for name in dict.fromkeys(e.name for e in self.entries):
+                    batch.params.set(name, np.repeat(self.sim.params.get(name), s.search_points,
+                                                     axis=0))
+                values = batch.params.get(entry.name)
+                for b, candidate in enumerate(grid):
+                    values[(b,) + entry.index[1:]] = entry.coordinate.to_theta(candidate)
+                batch.params.set(entry.name, values)
+                try:
+                    traj = batch.rollout(frames)
+                except SimulationDiverged as error:
+                    _LOG.warning("search over %s skipped: %s", entry.label, error)
+                    continue
+                losses = [np.mean([geometry_loss(traj[f, b].astype(np.float64), self.index,
+                                                 obs.points[f], s.per_object_loss)[0]
+                                   for f in range(1, frames + 1)])
+                          for b in range(s.search_points)]
+                u[i] = grid[int(np.argmin(losses))]
+                _LOG.info("search round %d: %s = %.4g (loss %.3g)", round_ + 1, entry.label,
+                          float(entry.coordinate.to_theta(u[i])), min(losses))
+        self._apply(u, velocity)
+        return u
+
+    # --- the fit -----------------------------------------------------------------------------
+
+    def run(self) -> FitResult:
+        obs, s = self.problem.observations, self.settings
+        n = obs.n_frames - 1
+        g = self.sim.params.get("gravity.g")[0] if "gravity.g" in self.sim.params else np.zeros(3)
+        velocity = np.zeros((obs.n_objects, 6))
+        velocity[:, :3] = obs.initial_velocities(g, frames=2)
+        u = self._pack()
+        adam = _Adam(np.r_[np.full(len(u), s.learning_rate),
+                           np.full(velocity.size, s.velocity_learning_rate)])
+        history: list[dict] = []
+        stage0, iteration0, failures = 0, 0, 0
+        signature = self._signature()
+        resumed = self._load_checkpoint(signature)
+        if resumed is not None:
+            u, velocity, adam, history, stage0, iteration0, failures = resumed
+            _LOG.info("resuming identification from %s: stage %d, iteration %d",
+                      self.settings.checkpoint_dir, stage0, iteration0)
+        else:
+            u = self._search(velocity)
+        stages = [h if 0 < h < n else n for h in s.curriculum]
+        for stage in range(stage0, len(stages)):
+            length = stages[stage]
+            starts = sorted({int(round(x)) for x in np.linspace(0, n - length, min(WINDOWS, n - length + 1))})
+            if length == n:
+                starts = [0]
+            anchor: dict[int, SimState] = {}
+            for iteration in range(iteration0 if stage == stage0 else 0, s.iterations):
+                self._apply(u, velocity)
+                start = starts[iteration % len(starts)]
+                if start > 0 and (start not in anchor or iteration % s.resync_every == 0):
+                    anchor = self._anchor(starts)
+                try:
+                    initial = self._resynced(anchor, start) if start > 0 else None
+                    loss, du, dv, per = self._window_loss(start, length, initial, grad=True)
+                except SimulationDiverged as error:
+                    failures += 1
+                    adam.lr *= 0.5
+                    u, velocity = adam.undo(u, velocity)
+                    _LOG.warning("iteration %d diverged (%s); step undone, learning rates halved",
+                                 iteration, error)
+                    continue
+                if not s.fit_velocity:
+                    dv[:] = 0.0
+                step = adam.step(np.concatenate([du, dv.ravel()]))
+                u, velocity = u + step[: len(u)], velocity + step[len(u):].reshape(velocity.shape)
+                record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
+                          "loss": loss, "values": self._values_of(u)}
+                history.append(record)
+                if self.progress is not None:
+                    self.progress(record)
+                self._save_checkpoint(signature, u, velocity, adam, history, stage,
+                                      iteration + 1, failures)
+        self._apply(u, velocity)
+        loss, _, _, per = self._window_loss(0, n, None, grad=False)
+        values = {name: self.sim.params.get(name)[0] for name in dict.fromkeys(e.name for e in self.entries)}
+        return FitResult(values, self.entries, u, velocity, loss, per, history, failures)
+
+    def _values_of(self, u: np.ndarray) -> dict[str, float]:
+        return {e.label: float(e.coordinate.to_theta(v)) for e, v in zip(self.entries, u, strict=True)}
+
+    # --- checkpoints -------------------------------------------------------------------------
+
+    def _signature(self) -> str:
+        obs = self.problem.observations
+        text = json.dumps({
+            "objects": [(o.name, o.family) for o in self.problem.objects],
+            "free": [e.label for e in self.entries], "frames": obs.n_frames,
+            "frame_dt": obs.frame_dt, "particles": int(len(self.index)),
+            "centroids": np.round(np.nan_to_num(self.observed_centroids), 6).tolist(),
+            "settings": [self.settings.curriculum, self.settings.iterations],
+        })
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def _save_checkpoint(self, signature, u, velocity, adam, history, stage, iteration,
+                         failures) -> None:
+        if not self.settings.checkpoint_dir:
+            return
+        directory = Path(self.settings.checkpoint_dir)
+        directory.mkdir(parents=True, exist_ok=True)
+        tmp = directory / (CHECKPOINT_FILE + ".tmp.npz")
+        np.savez(tmp, signature=signature, u=u, velocity=velocity, m=adam.m, v=adam.v,
+                 t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
+                 history=json.dumps(history))
+        os.replace(tmp, directory / CHECKPOINT_FILE)
+
+    def _load_checkpoint(self, signature: str):
+        if not self.settings.checkpoint_dir:
+            return None
+        path = Path(self.settings.checkpoint_dir) / CHECKPOINT_FILE
+        if not path.is_file():
+            return None
+        try:
+            data = np.load(path)
+            if str(data["signature"]) != signature:
+                _LOG.warning("%s belongs to another problem or settings; starting afresh", path)
+                return None
+            adam = _Adam(data["lr"])
+            adam.m, adam.v, adam.t = data["m"], data["v"], int(data["t"])
+            return (data["u"], data["velocity"], adam, json.loads(str(data["history"])),
+                    int(data["stage"]), int(data["iteration"]), int(data["failures"]))
+        except (OSError, KeyError, ValueError) as error:
+            _LOG.warning("cannot read checkpoint %s (%s); starting afresh", path, error)
+            return None
+
+
+class _Adam:
+    """Adam (Kingma & Ba 2015) on a flat vector, one step size per coordinate.
+
+    It remembers its last step so that a diverged iteration can be undone.
+    """
+
+    def __init__(self, lr: np.ndarray, beta1: float = 0.9, beta2: float = 0.999) -> None:
+        self.lr = np.asarray(lr, dtype=np.float64)
+        self.beta1, self.beta2 = beta1, beta2
+        size = len(self.lr)
+        self.m, self.v, self.t = np.zeros(size), np.zeros(size), 0
+        self.last = np.zeros(size)
+
+    def step(self, grad: np.ndarray) -> np.ndarray:
+        grad = np.nan_to_num(grad)
+        self.t += 1
+        self.m = self.beta1 * self.m + (1 - self.beta1) * grad
+        self.v = self.beta2 * self.v + (1 - self.beta2) * grad * grad
+        m_hat = self.m / (1 - self.beta1**self.t)
+        v_hat = self.v / (1 - self.beta2**self.t)
+        self.last = -self.lr * m_hat / (np.sqrt(v_hat) + 1e-12)
+        return self.last
+
+    def undo(self, u: np.ndarray, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = u - self.last[: len(u)]
+        velocity = velocity - self.last[len(u):].reshape(velocity.shape)
+        self.last = np.zeros_like(self.last)
+        return u, velocity

@@ -1,0 +1,107 @@
+"""What the identifier fits to: observed geometry per object per frame, and optional silhouettes.
+
+``Observations`` holds, for frames at a fixed spacing ``frame_dt`` starting at the first observed
+frame (the simulation's t = 0), each object's observed points (surface or occupancy, world frame)
+and optionally calibrated views with their instance masks for the 2D loss. Objects are in the
+simulator's order; ``object_ids`` gives each one's id in the masks.
+
+What it is for: the data side of the losses, and the first-frame estimates the fit starts from
+(initial velocities from centroid motion). What it is not for: building observations from
+images (``mosiv_ros.recon``) or losses (``mosiv_ros.identify.losses``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class View:
+    """A calibrated camera: pinhole ``K`` (3x3), ``T_world_optical`` (4x4), image size."""
+
+    name: str
+    K: np.ndarray
+    T_world_optical: np.ndarray
+    width: int
+    height: int
+
+    def project(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (N, 2) and depth along the optical axis (N,) of world points."""
+        T = np.linalg.inv(self.T_world_optical)
+        cam = x @ T[:3, :3].T + T[:3, 3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (cam[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        return uv, z
+
+
+@dataclass
+class Observations:
+    """Observed per-object geometry over frames 0..F-1 at ``frame_dt`` seconds apart.
+
+    ``points[f][k]`` (M, 3) are object k's points at frame f (M may be 0 where it was not seen).
+    ``masks[f][view name]`` (H, W) holds object ids (0 = background) for the views in ``views``.
+    """
+
+    frame_dt: float
+    points: list[list[np.ndarray]]
+    object_ids: list[int]
+    views: list[View] = field(default_factory=list)
+    masks: list[dict[str, np.ndarray]] = field(default_factory=list)
+    start_ns: int = 0
+
+    def __post_init__(self) -> None:
+        if self.frame_dt <= 0:
+            raise ValueError(f"frame_dt must be positive, got {self.frame_dt}")
+        k = len(self.object_ids)
+        for f, frame in enumerate(self.points):
+            if len(frame) != k:
+                raise ValueError(f"frame {f}: {len(frame)} point sets for {k} objects")
+        if self.masks and len(self.masks) != len(self.points):
+            raise ValueError(f"{len(self.masks)} mask frames for {len(self.points)} point frames")
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_objects(self) -> int:
+        return len(self.object_ids)
+
+    def centroids(self) -> np.ndarray:
+        """(F, K, 3) centroid of each object's points per frame, NaN where it has none."""
+        out = np.full((self.n_frames, self.n_objects, 3), np.nan)
+        for f, frame in enumerate(self.points):
+            for k, pts in enumerate(frame):
+                if len(pts):
+                    out[f, k] = pts.mean(axis=0)
+        return out
+
+    def initial_velocities(self, gravity: np.ndarray, frames: int = 3) -> np.ndarray:
+        """(K, 3) centroid velocity at t = 0 from a constant-acceleration fit to the first frames.
+
+        The acceleration is fixed to ``gravity``: x(t) = x0 + v0 t + g t^2 / 2, fitted by least
+        squares over the first ``frames`` frames in which the object is seen (an object resting
+        on support fits v0 ~ 0 because its centroid does not move either way).
+        """
+        c = self.centroids()[:frames]
+        t = np.arange(len(c)) * self.frame_dt
+        v0 = np.zeros((self.n_objects, 3))
+        for k in range(self.n_objects):
+            seen = ~np.isnan(c[:, k, 0])
+            if seen.sum() < 2:
+                continue
+            tk = t[seen]
+            residual = c[seen, k] - 0.5 * np.outer(tk**2, gravity)
+            A = np.stack([np.ones_like(tk), tk], axis=1)
+            v0[k] = np.linalg.lstsq(A, residual, rcond=None)[0][1]
+        return v0
+
+    def select(self, frames: slice) -> Observations:
+        """The observations of a range of frames (the first one becomes frame 0)."""
+        start = frames.start or 0
+        return Observations(self.frame_dt, self.points[frames], self.object_ids, self.views,
+                            self.masks[frames] if self.masks else [],
+                            self.start_ns + int(round(start * self.frame_dt * 1e9)))

@@ -1,0 +1,183 @@
+"""Identification: losses and their gradients, coordinates, the fit, checkpoint and resume."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sim_scenes import scene
+
+from mosiv_ros.identify.coordinates import Coordinate
+from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
+from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
+from mosiv_ros.identify.observations import Observations, View
+from mosiv_ros.sim import Ground, ObjectModel, Particles
+from mosiv_ros.sim.boundaries import GROUND_PARAMS
+from mosiv_ros.sim.materials import MATERIAL_PARAMS
+from mosiv_ros.sim.sampling import box, sphere
+
+RNG = np.random.default_rng(0)
+
+
+def test_per_object_chamfer_gradient_matches_finite_differences():
+    x = RNG.normal(size=(40, 3))
+    index = np.repeat([0, 1], 20)
+    observed = [RNG.normal(size=(25, 3)), RNG.normal(size=(30, 3)) + 1.0]
+    loss, grad, per = geometry_loss(x, index, observed)
+    assert loss == pytest.approx(per.sum())
+    h = 1e-6
+    for i, c in [(3, 0), (25, 2), (39, 1)]:
+        shifted = x.copy()
+        shifted[i, c] += h
+        up = geometry_loss(shifted, index, observed)[0]
+        shifted[i, c] -= 2 * h
+        down = geometry_loss(shifted, index, observed)[0]
+        assert grad[i, c] == pytest.approx((up - down) / (2 * h), rel=1e-5)
+
+
+def test_scene_level_loss_lets_one_objects_points_explain_anothers():
+    # Object 0's particles sit exactly on object 1's observed points and vice versa: swapped
+    # identities. The union Chamfer sees nothing wrong; the per-object loss does.
+    a, b = RNG.normal(size=(30, 3)), RNG.normal(size=(30, 3)) + 3.0
+    x = np.concatenate([b, a])
+    index = np.repeat([0, 1], 30)
+    assert geometry_loss(x, index, [a, b], per_object=False)[0] == pytest.approx(0.0)
+    assert geometry_loss(x, index, [a, b], per_object=True)[0] > 10.0
+
+
+def _camera_looking_down(height: float = 1.0) -> View:
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])  # optical z down the world -z, x along world x
+    T[:3, 3] = [0.0, 0.0, height]
+    return View("top", np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]]), T, 64, 48)
+
+
+def test_silhouette_gradient_matches_finite_differences():
+    view = _camera_looking_down()
+    x = RNG.uniform(-0.05, 0.05, size=(30, 3))
+    index = np.zeros(30, dtype=int)
+    mask = np.zeros((48, 64), dtype=np.uint16)
+    mask[18:32, 26:40] = 1
+    loss, grad = silhouette_loss(x, index, [1], [view], {"top": mask}, splat_radius=0.01)
+    assert loss > 0
+    h = 1e-6
+    for i, c in [(0, 0), (7, 1), (21, 2)]:
+        shifted = x.copy()
+        shifted[i, c] += h
+        up = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01)[0]
+        shifted[i, c] -= 2 * h
+        down = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01)[0]
+        assert grad[i, c] == pytest.approx((up - down) / (2 * h), rel=1e-4, abs=1e-9)
+
+
+def test_silhouette_treats_pixels_of_another_object_as_unknown():
+    # Object 1's particles project onto pixels that the mask gives to object 2 (an occluder):
+    # no penalty for them, while the same particles over background pixels are penalised.
+    view = _camera_looking_down()
+    x = RNG.uniform(-0.02, 0.02, size=(20, 3))
+    index = np.zeros(20, dtype=int)
+    occluded = np.full((48, 64), 2, dtype=np.uint16)
+    empty = np.zeros((48, 64), dtype=np.uint16)
+    assert silhouette_loss(x, index, [1], [view], {"top": occluded}, 0.01)[0] == 0.0
+    assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
+
+
+@pytest.mark.parametrize("spec", [*MATERIAL_PARAMS, *GROUND_PARAMS], ids=lambda s: s.name)
+def test_coordinates_round_trip_and_keep_values_inside_their_range(spec):
+    c = Coordinate.for_spec(spec)
+    for value in np.linspace(spec.lower, spec.upper, 7)[1:-1]:
+        assert c.to_theta(c.to_u(value)) == pytest.approx(value, rel=1e-6)
+    for u in (-50.0, 50.0):
+        assert spec.lower <= float(np.float32(c.to_theta(u))) <= spec.upper or c.kind == "linear"
+    if spec.name in ("E", "yield_stress", "viscosity"):
+        assert c.kind == "log"
+    if spec.name in ("nu", "friction", "friction_angle"):
+        assert c.kind == "logit"
+
+
+def _cube_problem(true_params, guess, free, frames=15, observed_points=None, start=(0.2, 0.3),
+                  velocity=(0.4, 0.0, -0.5), friction_guess=0.3, **settings):
+    """A cube thrown at the ground, observed as (a sample of) its true particles."""
+    dx = 0.025
+    cube = box((start[0], 0.2, start[1]), (0.05, 0.05, 0.05), dx / 2)
+    common = dict(dx=dx, lo=(0, 0, -0.05), hi=(0.6, 0.4, 0.45), frame_dt=1 / 30,
+                  ground=Ground(height=0.08, friction=0.3), velocities=[velocity])
+    truth = scene([cube], [ObjectModel("cube", "elastic", true_params)], **common)
+    traj = truth.rollout(frames)[:, 0].astype(np.float64)
+    pick = (np.arange(len(cube[0])) if observed_points is None
+            else RNG.choice(len(cube[0]), observed_points, replace=False))
+    obs = Observations(1 / 30, [[traj[f][pick]] for f in range(frames + 1)], object_ids=[1])
+    particles = Particles(x=cube[0], volume=cube[1], object_index=np.zeros(len(cube[0])))
+    config = truth.config
+    config.ground = Ground(height=0.08, friction=friction_guess)
+    problem = FitProblem([ObjectModel("cube", "elastic", guess)], particles, obs, config, free)
+    return problem, FitSettings(**{"curriculum": [6, 0], "iterations": 6, **settings})
+
+
+def _jelly_problem(true_params, guess, frames=15, observed_points=None, **settings):
+    """A soft cube dropped so that it squashes and rebounds: E and nu show, friction barely."""
+    return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **settings)
+
+
+def test_fit_recovers_modulus_and_poisson_ratio_of_a_dropped_soft_cube():
+    problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2},
+                                       observed_points=150)
+    result = Identifier(problem, settings).run()
+    assert abs(np.log10(result.values["E"][0] / 2e4)) < 0.1
+    assert abs(result.values["nu"][0] - 0.3) < 0.05
+    # the thrown velocity is recovered from the first two frames and refined
+    assert result.velocity[0, :3] == pytest.approx([0.4, 0.0, -0.5], abs=0.03)
+
+
+def test_fit_recovers_the_ground_friction_of_a_cube_sliding_to_a_stop():
+    problem, settings = _cube_problem({"E": 5e4}, {"E": 5e4}, ["ground.friction"], frames=12,
+                                      observed_points=150, start=(0.15, 0.135),
+                                      velocity=(1.0, 0.0, 0.0), friction_guess=0.8)
+    result = Identifier(problem, settings).run()
+    assert result.values["ground.friction"] == pytest.approx(0.3, rel=0.1)
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninterrupted_one_does(
+        tmp_path):
+    args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
+    problem, settings = _jelly_problem(*args, frames=8, search_rounds=1, iterations=4,
+                                       checkpoint_dir=str(tmp_path / "ckpt"))
+    reference = Identifier(*_jelly_problem(*args, frames=8, search_rounds=1, iterations=4)).run()
+
+    def stop_after_five(record):
+        if len([r for r in seen if r]) >= 4:
+            raise _Stop
+        seen.append(record)
+
+    seen: list[dict] = []
+    with pytest.raises(_Stop):
+        Identifier(problem, settings, progress=stop_after_five).run()
+    assert (tmp_path / "ckpt" / "identify_checkpoint.npz").is_file()
+    resumed_records: list[dict] = []
+    resumed = Identifier(problem, settings, progress=resumed_records.append).run()
+    assert len(resumed_records) == len(reference.history) - 4  # only what was left
+    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=1e-5)
+    assert len(resumed.history) == len(reference.history)
+
+
+def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
+                                       iterations=2, checkpoint_dir=str(tmp_path))
+    Identifier(problem, settings).run()
+    other, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, search_rounds=1,
+                                     iterations=2, checkpoint_dir=str(tmp_path))
+    result = Identifier(other, settings).run()
+    assert len(result.history) == 2 * 2  # two stages of two iterations: started afresh
+
+
+def test_observations_and_problem_mismatches_are_clear_errors():
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=4)
+    problem.objects.append(ObjectModel("ghost", "elastic"))
+    with pytest.raises(ValueError, match="observations cover 1 objects, the problem has 2"):
+        Identifier(problem, settings)
+    ball = sphere((0.2, 0.2, 0.2), 0.04, 0.0125)
+    with pytest.raises(ValueError, match="frame 0: 2 point sets for 1 objects"):
+        Observations(1 / 30, [[ball[0], ball[0]]], object_ids=[1])
