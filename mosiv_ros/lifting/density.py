@@ -48,11 +48,13 @@ class Box:
 
 
 def occupancy_on_lattice(voxel_centres: np.ndarray, voxel_size: float, box: Box) -> np.ndarray:
-    """Bool grid of ``box``: cells whose centre lies in an occupied voxel or that hold one's centre.
+    """Bool grid of ``box``: cells whose centre lies in an occupied voxel or that are half covered.
 
-    Holding a voxel centre matters only for cells larger than voxels: no voxel is lost. The voxels
-    may be of any size (the reconstruction's); their lattice is recovered from the centres
-    themselves: voxel i spans centre_i +- voxel_size / 2.
+    Half covered: occupied voxels cover at least half of the cell, which matters only for cells
+    larger than voxels. (Counting every cell that holds any voxel centre would grow each object
+    by up to a cell: +33 % on a 4 cm ball at 1 cm spacing.) The voxels may be of any size (the
+    reconstruction's); their lattice is recovered from the centres themselves: voxel i spans
+    centre_i +- voxel_size / 2.
     """
     ref = voxel_centres.min(axis=0)
     index = np.round((voxel_centres - ref) / voxel_size).astype(np.int64)
@@ -66,8 +68,12 @@ def occupancy_on_lattice(voxel_centres: np.ndarray, voxel_size: float, box: Box)
         slabs.append(np.where((q >= 0) & (q < occupied.shape[a]), q, -1))
     grid = occupied[np.ix_(*(np.maximum(s, 0) for s in slabs))]
     grid &= (slabs[0] >= 0)[:, None, None] & (slabs[1] >= 0)[None, :, None] & (slabs[2] >= 0)[None, None, :]
-    holding = np.floor(voxel_centres / box.h).astype(np.int64) - box.lo
-    grid[tuple(holding.T)] = True
+    if box.h > voxel_size:
+        holding = np.floor(voxel_centres / box.h).astype(np.int64) - box.lo
+        inside = np.all((holding >= 0) & (holding < np.asarray(box.shape)), axis=1)
+        coverage = np.zeros(box.shape, dtype=np.float64)
+        np.add.at(coverage, tuple(holding[inside].T), (voxel_size / box.h) ** 3)
+        grid |= coverage >= 0.5
     return grid
 
 
