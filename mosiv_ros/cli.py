@@ -1,6 +1,7 @@
 """The ``mosiv`` command line: the pipeline's entry points without a ROS launch system.
 
-    mosiv graph BAG          replay BAG through the node graph and print what arrives
+    mosiv run BAG --out D    the whole pipeline in-process: estimates, twin and report in D
+    mosiv graph BAG          replay BAG through the five nodes; estimates and report in --out
     mosiv info BAG           read a recording and summarise cameras, frames and objects
     mosiv make-sample-bag D  write the bundled analytic sample recording to D
     mosiv record SCENE D     simulate and render a scene file (config/scenes/) into the bag D
@@ -131,26 +132,101 @@ def cmd_make_suite(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_graph(args: argparse.Namespace) -> int:
-    from mosiv_ros.graph import Graph, NodeSpec
+def load_params_file(path: Path | None) -> dict[str, object]:
+    """Stage configs from a ROS 2 params file (node name -> ros__parameters), defaults elsewhere."""
+    from mosiv_ros.config import from_mapping
 
+    document = yaml.safe_load(path.read_text()) if path else {}
+    if document is not None and not isinstance(document, dict):
+        raise ValueError(f"{path}: not a ROS 2 params file (expected a mapping of node names)")
+    document = document or {}
+    unknown = sorted(set(document) - set(STAGE_CONFIGS))
+    if unknown:
+        raise ValueError(f"{path}: unknown node(s) {', '.join(unknown)}")
+    return {node: from_mapping(config, (document.get(node) or {}).get("ros__parameters", {}))
+            for node, config in STAGE_CONFIGS.items()}
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import time
+
+    from mosiv_ros.pipeline import RunConfig, run
+    from mosiv_ros.sim.errors import SimulationError
+
+    configs = load_params_file(args.params_file)
+    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
+                       configs["identify_node"], configs["prediction_node"], holdout=args.holdout,
+                       render=not args.no_render)
+    if args.device:
+        config.identify.device = config.prediction.device = args.device
+    start = time.perf_counter()
+    progress, close = _progress_bars()
+    try:
+        result = run(args.bag, args.out, config, progress=progress)
+    except SimulationError as error:
+        print(f"mosiv run: {args.bag}: {error}", file=sys.stderr)
+        return 2
+    finally:
+        close()
+    _print_summary(result)
+    print(f"report: {result.out / 'report.md'} ({time.perf_counter() - start:.0f} s)")
+    return 0
+
+
+def cmd_graph(args: argparse.Namespace) -> int:
+    import time
+
+    from mosiv_ros.graph import Graph, NodeSpec
+    from mosiv_ros.identify.estimates import Estimates
+    from mosiv_ros.io.bag import list_topics
+    from mosiv_ros.pipeline import RunConfig, evaluate, prepare
+
+    start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
-    specs = [NodeSpec(name, {"scene": bag} if "scene" in _params(name) else {})
-             for name in STAGE_NODES]
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    estimates_file = out / "estimates.yaml"
+    estimates_file.unlink(missing_ok=True)
+    images = min(info.message_count for topic, info in list_topics(bag).items()
+                 if topic.endswith("/color/image_raw"))
+    window = max(2, int(round(images * (1 - args.holdout))))
+    overrides = {"identify_node": {"output_yaml": str(estimates_file), "window": window}}
+    specs = [NodeSpec(name, {**({"scene": bag} if "scene" in _params(name) else {}),
+                             **overrides.get(name, {})}) for name in STAGE_NODES]
     specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
                                               "wait_for_subscribers": 1}))
     with Graph(specs, params_file=args.params_file) as graph:
         replay = graph.nodes["bag_replay_node"].process
         try:
             code = replay.wait(args.timeout)
-        except subprocess.TimeoutExpired:
-            print(f"mosiv graph: replay did not finish within {args.timeout:.0f} s", file=sys.stderr)
+            graph.nodes["identify_node"].wait_for_line("identification done",
+                                                       args.timeout - (time.perf_counter() - start))
+            graph.nodes["prediction_node"].wait_for_line("predicted", 120)
+        except (subprocess.TimeoutExpired, GraphError) as error:
+            print(f"mosiv graph: the graph did not finish: {error}", file=sys.stderr)
             return 1
         frame_sets = [line for line in graph.nodes["reconstruction_node"].lines
                       if "frame set" in line]
     print(f"mosiv graph: {bag} replayed (exit code {code}); reconstruction_node received "
-          f"{len(frame_sets)} complete frame sets")
+          f"{len(frame_sets)} complete frame sets; identify_node fitted the first {window}")
+    configs = load_params_file(args.params_file)
+    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
+                       configs["identify_node"], configs["prediction_node"])
+    estimates = Estimates.read(estimates_file)
+    result = evaluate(prepare(bag, config), estimates, estimates.frames, out, config)
+    _print_summary(result)
+    print(f"report: {out / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
     return 0 if code == 0 and frame_sets else 1
+
+
+def _print_summary(result) -> None:
+    for obj in result.estimates.objects:
+        values = ", ".join(f"{k}={v:.4g}" for k, v in obj.params.items())
+        print(f"{obj.name} ({obj.family}, {obj.level}): {values}")
+    metrics = result.report["metrics"]
+    for part in ("observed", "future"):
+        if part in metrics and "cd" in metrics[part]:
+            print(f"{part} frames: CD {metrics[part]['cd'] * 1e3:.2f} mm")
 
 
 def _params(node: str) -> set[str]:
@@ -168,7 +244,12 @@ def build_parser() -> argparse.ArgumentParser:
     graph.add_argument("--rate", type=float, default=1.0, help="replay rate (0 = fastest)")
     graph.add_argument("--params-file", type=Path, default=None,
                        help="ROS 2 params file (default: the installed config/mosiv.yaml)")
-    graph.add_argument("--timeout", type=float, default=600.0, help="seconds to wait for the replay")
+    graph.add_argument("--timeout", type=float, default=900.0,
+                       help="seconds to wait for the replay and the identification")
+    graph.add_argument("--out", type=Path, default=Path("out/graph"),
+                       help="where identify_node writes the estimates and the report goes")
+    graph.add_argument("--holdout", type=float, default=0.3,
+                       help="fraction of the frames kept out of the fit and scored as future")
     graph.set_defaults(func=cmd_graph)
 
     info = sub.add_parser("info", help="summarise a recording")
@@ -194,6 +275,17 @@ def build_parser() -> argparse.ArgumentParser:
     suite.add_argument("--seed", type=int, default=0, help="seed of the parameter jitter and noise")
     suite.add_argument("--scenes-only", action="store_true", help="write and check the scene files only")
     suite.set_defaults(func=cmd_make_suite)
+
+    run = sub.add_parser("run", help="the whole pipeline in-process: bag -> estimates, twin, report")
+    run.add_argument("bag", help="rosbag2 directory")
+    run.add_argument("--out", type=Path, required=True, help="output directory for the report")
+    run.add_argument("--params-file", type=Path, default=None,
+                     help="ROS 2 params file (default: config/mosiv.yaml's values)")
+    run.add_argument("--holdout", type=float, default=0.3,
+                     help="fraction of the frames kept out of the fit and scored as future")
+    run.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
+    run.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
+    run.set_defaults(func=cmd_run)
 
     params = sub.add_parser("params", help="print every node's default parameters")
     params.set_defaults(func=cmd_params)

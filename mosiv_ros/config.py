@@ -69,7 +69,8 @@ class ReconstructionConfig:
 class LiftingConfig:
     """lifting_node: fill each object's first observed frame with simulation particles (stage 2)."""
 
-    particle_spacing: float = _param(0.004, "Spacing of the particles that fill each object, metres.")
+    particle_spacing: float = _param(
+        0.01, "Spacing of the particles that fill each object, metres (the grid is twice as coarse).")
     boundary_band: float = _param(0.008, "Half-width of the band of boundary particles around the surface, metres.")
     boundary_beta: float = _param(5.0e3, "Sharpness beta of the boundary volume sigmoid, 1/m (M-PhyGs Eq. 1).")
     boundary_eps: float = _param(1.0e-4, "Floor epsilon of the boundary volume sigmoid (M-PhyGs Eq. 1).")
@@ -87,8 +88,14 @@ class IdentifyConfig:
     window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.")
     idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.")
     curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.")
-    iterations: int = _param(100, "Optimiser iterations per curriculum stage.")
+    iterations: int = _param(20, "Optimiser iterations per curriculum stage.")
     learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.")
+    velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.")
+    windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.")
+    search_rounds: int = _param(3, "Rounds of the batched coordinate search before Adam; 0 = none.")
+    search_points: int = _param(5, "Values tried per parameter in a search round.")
+    search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")
+    uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
@@ -107,6 +114,7 @@ class PredictionConfig:
     horizon: float = _param(2.0, "Seconds to predict past the last observed frame.")
     frame_rate: float = _param(10.0, "Predicted frames per second.")
     estimates_file: str = _param("", "Material estimates YAML written by identify_node; empty = use the topic.")
+    scene: str = _param("", SCENE_HELP)
 
 
 STAGE_CONFIGS: dict[str, type] = {

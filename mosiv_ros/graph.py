@@ -27,6 +27,8 @@ import yaml
 
 PACKAGE = "mosiv_ros"
 LOG = logging.getLogger(__name__)
+READY_TIMEOUT = 60.0
+"""Seconds a node may take to start (import, kernel cache, DDS discovery) before it is an error."""
 
 
 class GraphError(RuntimeError):
@@ -111,6 +113,16 @@ class NodeProcess:
                     )
                 self._new_line.wait(min(remaining, 0.2))
 
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait for the node's '<name> ready' line: True, or False if it exited first."""
+        try:
+            self.wait_for_line(f"{self.name} ready", timeout)
+            return True
+        except GraphError:
+            if self.process.poll() is not None:
+                return False
+            raise
+
     def stop(self, timeout: float) -> int:
         """SIGINT (a clean rclpy shutdown), then SIGTERM, then SIGKILL; return the exit code."""
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
@@ -162,7 +174,10 @@ class Graph:
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
         for spec in self.specs:
-            self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+            # in order, each once it is ready, so that a node never misses what the one started
+            # before it publishes (a node that exits at start-up is left for the caller to see)
+            node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+            node.wait_ready(READY_TIMEOUT)
         return self
 
     def stop(self, timeout: float = 5.0) -> dict[str, int]:

@@ -42,6 +42,25 @@ def synth_pair_bag(tmp_path_factory: pytest.TempPathFactory):
     return record_scene(tmp_path_factory.mktemp("synth"), PAIR, "pair")
 
 
+@pytest.fixture(scope="session")
+def drop_bag(tmp_path_factory: pytest.TempPathFactory):
+    """``synth_scenes.DROP`` recorded by the synthetic recorder. Shared: never change it."""
+    from synth_scenes import DROP, record_scene
+
+    return record_scene(tmp_path_factory.mktemp("synth"), DROP, "drop")
+
+
+@pytest.fixture(scope="session")
+def fast_params(tmp_path_factory: pytest.TempPathFactory):
+    """A ROS 2 params file with ``synth_scenes.FAST_PARAMS``."""
+    import yaml
+    from synth_scenes import FAST_PARAMS
+
+    path = tmp_path_factory.mktemp("params") / "fast.yaml"
+    path.write_text(yaml.safe_dump(FAST_PARAMS))
+    return path
+
+
 # ros fixtures
 
 

@@ -70,3 +70,28 @@ def record_scene(directory: Path, scene: dict, name: str, seed: int = 0) -> Path
 
     return record(read_scene_file(write_scene(directory, scene, f"{name}.yaml")), Path(directory) / name,
                   seed=seed)
+
+
+DROP = {
+    "name": "test_drop",
+    "duration": 0.8,
+    "objects": [
+        {"name": "jelly", "shape": "box", "size": [0.08, 0.08, 0.08], "position": [0.0, 0.0, 0.14],
+         "velocity": [0.3, 0.0, -0.4], "family": "elastic", "params": {"E": 2.0e4, "nu": 0.3},
+         "color": [210, 40, 35]},
+    ],
+    "cameras": {"placement": "ring", "count": 2, "radius": 0.5, "height": 0.3,
+                "look_at": [0.05, 0.0, 0.05], "resolution": [64, 48], "horizontal_fov": 0.9,
+                "fps": FPS},
+    "simulation": {"dx": 0.03, "margin": 0.1},
+}
+"""One soft cube thrown at the floor, two cameras, 9 frames: the pipeline's smallest input."""
+
+FAST_PARAMS = {
+    "lifting_node": {"ros__parameters": {"particle_spacing": 0.015}},
+    "identify_node": {"ros__parameters": {
+        "iterations": 1, "curriculum": [0], "search_rounds": 1, "search_points": 3,
+        "uncertainty": False, "silhouette_weight": 0.0}},
+    "prediction_node": {"ros__parameters": {"horizon": 0.5}},
+}
+"""Node parameters for a fit of a few seconds: the plumbing, not the accuracy, is under test."""

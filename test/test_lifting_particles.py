@@ -17,7 +17,8 @@ from mosiv_ros.lifting import LiftedParticles, boundary_volume, lift, lift_first
 from mosiv_ros.recon import VOXEL_FIELD, ObjectGeometry, ObservedFrame, reconstruct_recording
 
 VOXEL = 0.005
-H = LiftingConfig().particle_spacing
+FINE = LiftingConfig(particle_spacing=0.004)  # a lattice finer than the voxels
+H = FINE.particle_spacing
 SCENE = Scene(objects=[SceneObject(1, "a", "elastic"), SceneObject(2, "b", "sand")])
 
 
@@ -42,7 +43,7 @@ def observed(*objects: np.ndarray, voxel: float = VOXEL) -> PointCloud:
 
 @pytest.mark.parametrize("radius", [0.03, 0.06, 0.1])
 def test_lifted_volume_of_a_ball_is_within_3_percent_of_its_true_volume(radius):
-    lifted = lift(observed(ball((0.01, -0.02, 0.2), radius)), LiftingConfig(), SCENE)
+    lifted = lift(observed(ball((0.01, -0.02, 0.2), radius)), FINE, SCENE)
     true = 4 / 3 * math.pi * radius**3
     assert abs(lifted.object_volume(1) / true - 1) < 0.03
     assert np.all(lifted.material == FAMILIES.index("elastic"))
@@ -55,11 +56,22 @@ def test_a_one_voxel_thin_plate_and_rod_are_not_eroded():
     # On the voxels' own lattice the refined shape is exactly the observed one.
     same = lift(observed(thin), LiftingConfig(particle_spacing=VOXEL), SCENE)
     np.testing.assert_allclose(same.object_volume(1), len(thin) * VOXEL**3, rtol=1e-3)
-    # On the default, finer lattice every observed voxel still holds solid particles.
-    lifted = lift(observed(thin), LiftingConfig(), SCENE)
+    # On a finer lattice every observed voxel still holds solid particles.
+    lifted = lift(observed(thin), FINE, SCENE)
     solid = lifted.x[lifted.sdf < 0]
     distance, _ = cKDTree(solid).query(thin, p=np.inf)
     assert np.all(distance <= VOXEL / 2)
+
+
+def test_on_a_lattice_coarser_than_the_voxels_volumes_hold_and_thin_parts_stay_one_cell_thick():
+    coarse = LiftingConfig(particle_spacing=0.01)
+    lifted = lift(observed(ball((0.01, -0.02, 0.2), 0.05)), coarse, SCENE)
+    assert abs(lifted.object_volume(1) / (4 / 3 * math.pi * 0.05**3) - 1) < 0.1
+    plate = voxelised(lambda p: np.ones(len(p), bool), (0.0, 0.0, 0.1), (0.1, 0.1, 0.1 + VOXEL))
+    thin = lift(observed(plate), coarse, SCENE)
+    solid = thin.x[thin.sdf < 0]
+    assert len(solid) and np.all(cKDTree(solid).query(plate, p=np.inf)[0] <= 0.01)
+    assert np.ptp(solid[:, 2]) < 1e-9  # one cell thick, not grown
 
 
 def test_density_refinement_fills_a_pinhole_and_a_one_cell_crack():
@@ -78,7 +90,7 @@ def test_density_refinement_fills_a_pinhole_and_a_one_cell_crack():
 
 def test_interpenetrating_objects_get_disjoint_supports_split_between_them():
     a, b = ball((0.0, 0.0, 0.1), 0.05), ball((0.08, 0.0, 0.1), 0.05)  # overlapping by 2 cm
-    lifted = lift(observed(a, b), LiftingConfig(), SCENE)
+    lifted = lift(observed(a, b), FINE, SCENE)
     cells = np.floor(lifted.x / H).astype(np.int64)
     _, counts = np.unique(cells, axis=0, return_counts=True)
     assert counts.max() == 1
@@ -96,7 +108,7 @@ def test_interpenetrating_objects_get_disjoint_supports_split_between_them():
 def test_touching_objects_lifted_from_reconstruction_keep_their_volume_and_never_overlap():
     spheres = touching_pair()
     frames = reconstruct_recording(sphere_recording(spheres), ReconstructionConfig())
-    lifted = lift_first_complete(frames, LiftingConfig(), frames and _scene(spheres))
+    lifted = lift_first_complete(frames, FINE, frames and _scene(spheres))
     for s in spheres:
         true = 4 / 3 * math.pi * s.radius**3
         assert abs(lifted.object_volume(s.id) / true - 1) < 0.08, s.name
@@ -109,8 +121,8 @@ def test_touching_objects_lifted_from_reconstruction_keep_their_volume_and_never
 
 
 def test_boundary_volumes_follow_the_mphygs_sigmoid_and_the_offsets():
-    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.05)), LiftingConfig(), SCENE)
-    config = LiftingConfig()
+    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.05)), FINE, SCENE)
+    config = FINE
     V_g = H**3
     expected = V_g * (1 / (1 + np.exp(config.boundary_beta * lifted.sdf)) + config.boundary_eps)
     np.testing.assert_allclose(lifted.volumes(), expected, rtol=1e-9)
@@ -124,7 +136,7 @@ def test_boundary_volumes_follow_the_mphygs_sigmoid_and_the_offsets():
 
 
 def test_particle_cloud_round_trips_through_pointcloud2():
-    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.03), ball((0.1, 0.0, 0.1), 0.02)), LiftingConfig(), SCENE)
+    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.03), ball((0.1, 0.0, 0.1), 0.02)), FINE, SCENE)
     cloud = lifted.to_cloud()
     msg = pointcloud_to_msg(rosbags_types(), cloud.xyz, cloud.object_id, cloud.stamp_ns, "world", cloud.fields)
     assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", "volume", "material", "sdf",
@@ -140,7 +152,7 @@ def test_particle_cloud_round_trips_through_pointcloud2():
 
 
 def test_an_undeclared_object_is_lifted_with_unknown_material_and_a_warning():
-    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.03)), LiftingConfig(), Scene())
+    lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.03)), FINE, Scene())
     assert np.all(lifted.material == 255)
     assert any("not declared" in w for w in lifted.warnings)
 
@@ -153,15 +165,15 @@ def test_lifting_waits_for_the_first_frame_with_every_declared_object():
         return ObservedFrame(stamp, geometry)
 
     frames = [frame(1, (1, a)), frame(2, (1, a), (2, b)), frame(3, (2, b))]
-    lifted = lift_first_complete(frames, LiftingConfig(), SCENE)
+    lifted = lift_first_complete(frames, FINE, SCENE)
     assert lifted.stamp_ns == 2 and lifted.object_ids == [1, 2]
     with pytest.raises(ValueError, match="every declared object"):
-        lift_first_complete(frames[:1], LiftingConfig(), SCENE)
+        lift_first_complete(frames[:1], FINE, SCENE)
 
 
 def test_lifting_rejects_a_cloud_without_voxels_clearly():
     with pytest.raises(ValueError, match="voxel_size"):
-        lift(PointCloud(np.zeros((3, 3)), np.ones(3), stamp_ns=5), LiftingConfig(), SCENE)
+        lift(PointCloud(np.zeros((3, 3)), np.ones(3), stamp_ns=5), FINE, SCENE)
 
 
 def _scene(spheres) -> Scene:

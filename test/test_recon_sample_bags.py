@@ -54,7 +54,7 @@ def test_every_object_of_every_frame_is_within_the_chamfer_limit_and_apart(sampl
 
 def test_lifted_volumes_are_within_10_percent_of_what_the_cameras_see_and_never_overlap(sample, fused):
     recording, truth = sample
-    lifted = lift_first_complete(fused, LiftingConfig(), recording.scene)
+    lifted = lift_first_complete(fused, LiftingConfig(particle_spacing=0.004), recording.scene)
     assert lifted.stamp_ns == truth.stamps_ns[0]
     splat = read_ground_truth(BAG)["render"]["splat_radius"]
     for object_id in (1, 2):
@@ -64,7 +64,7 @@ def test_lifted_volumes_are_within_10_percent_of_what_the_cameras_see_and_never_
         volume = lifted.object_volume(object_id)
         assert abs(volume / seen - 1) < 0.10, (object_id, volume, seen)
         assert 1.0 < volume / true < 1.35, (object_id, volume, true)
-    cells = np.floor(lifted.x / LiftingConfig().particle_spacing).astype(np.int64)
+    cells = np.floor(lifted.x / 0.004).astype(np.int64)
     assert np.unique(cells, axis=0).shape[0] == len(cells)
     assert lifted.families == {1: "elastic", 2: "plastic"}
     assert np.all(lifted.x[:, 2] >= 0.0)  # nothing below the declared ground

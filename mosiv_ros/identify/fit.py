@@ -6,15 +6,16 @@ velocity) to its observations with Adam on the simulator's gradients:
 
 - coordinates: each parameter moves in ``identify.coordinates`` (log for moduli, bounded logits
   for nu and friction), velocities in m/s and rad/s;
-- initial velocities start from the observed centroid motion of the first two frames;
+- initial velocities start from the observed centroid motion of the first frames (an object
+  found at rest keeps a zero initial velocity; the others' are refined with the parameters);
 - before Adam, a gradient-free coordinate search: ``search_rounds`` passes over the free
   parameters, each set in turn to the best of ``search_points`` values around its current
   coordinate (half-width ``search_decades`` decades for scale parameters, 2 logit units
   otherwise, shrinking 3x per round), all values simulated in one batched rollout of the first
   ``search_frames`` frames (0 = all);
 - horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
-  windows of h frames, up to ``WINDOWS`` of them spread over the sequence; the last stage (0)
-  fits the whole sequence from frame 0;
+  windows of h frames, up to ``windows`` of them spread over the sequence and taken in turn;
+  the last stage (0) fits the whole sequence from frame 0;
 - resynchronisation (MOSIV): a window that starts at frame s > 0 starts from the state of an
   anchor rollout with the current parameters at s, each object's particles shifted (and their
   velocities offset) so that its centroid position and velocity match the observations at s,
@@ -49,7 +50,6 @@ from mosiv_ros.sim.materials import FAMILY_PARAMS
 
 _LOG = logging.getLogger(__name__)
 
-WINDOWS = 1
 CHECKPOINT_FILE = "identify_checkpoint.npz"
 
 
@@ -66,6 +66,7 @@ class FitSettings:
     per_object_loss: bool = True
     fit_velocity: bool = True
     resync_every: int = 10
+    windows: int = 3
     checkpoint_dir: str = ""
     splat_radius: float = 0.005
     search_points: int = 5
@@ -79,8 +80,9 @@ class FitProblem:
     """What to fit: a scene's objects, particles at the first observed frame, observations.
 
     ``free`` names the parameters to fit: a per-object material parameter name applies to every
-    object whose family uses it; other names (``ground.friction``, ``drag.coefficient``) are
-    fitted as they are. Every other parameter keeps its value in the simulator.
+    object whose family uses it, except where ``fixed[object name]`` lists it (a declared, known
+    value); other names (``ground.friction``, ``drag.coefficient``) are fitted as they are. Every
+    other parameter keeps its value in the simulator.
     """
 
     objects: list[ObjectModel]
@@ -88,6 +90,7 @@ class FitProblem:
     observations: Observations
     sim_config: SimConfig
     free: list[str]
+    fixed: dict[str, set[str]] = field(default_factory=dict)
 
 
 @dataclass
@@ -141,6 +144,7 @@ class Identifier:
         self.centre0 = np.stack([problem.particles.x[self.index == k].mean(axis=0)
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
+        self._batches: dict[int, Simulator] = {}
 
     # --- parameters <-> optimisation vector --------------------------------------------------
 
@@ -152,7 +156,7 @@ class Identifier:
             coordinate = Coordinate.for_spec(spec)
             if spec.per_object:
                 for k, obj in enumerate(self.problem.objects):
-                    if name in FAMILY_PARAMS[obj.family]:
+                    if name in FAMILY_PARAMS[obj.family] and name not in self.problem.fixed.get(obj.name, ()):
                         entries.append(Entry(name, (0, k), coordinate, f"{obj.name}.{name}"))
             elif spec.size > 1:
                 entries += [Entry(name, (0, c), coordinate, f"{name}[{c}]") for c in range(spec.size)]
@@ -223,8 +227,10 @@ class Identifier:
             if np.isnan(c_obs[start, k, 0]):
                 continue
             x[0, mine] += c_obs[start, k] - x[0, mine].mean(axis=0)
-            if start + 1 < len(c_obs) and not np.isnan(c_obs[start + 1, k, 0]):
-                v[0, mine] += (c_obs[start + 1, k] - c_obs[start, k]) / dt - v[0, mine].mean(axis=0)
+            # central difference: a forward one lags by half a frame of acceleration
+            before, after = c_obs[start - 1, k], c_obs[min(start + 1, len(c_obs) - 1), k]
+            if start + 1 < len(c_obs) and not (np.isnan(before[0]) or np.isnan(after[0])):
+                v[0, mine] += (after - before) / (2 * dt) - v[0, mine].mean(axis=0)
         return SimState(x, v, state.C, state.b)
 
     def _anchor(self, starts: list[int]) -> dict[int, SimState]:
@@ -236,40 +242,62 @@ class Identifier:
 
     # --- gradient-free initialisation -------------------------------------------------------
 
+    def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
+                     frames: int | None = None) -> np.ndarray:
+        """Geometry loss of each row of ``candidates`` (coordinate vectors, (B, P)).
+
+        On a GPU all rows are simulated in one batched rollout; on the CPU, where a batch costs
+        as much as its rows and runs at the time step of its stiffest row, one at a time. Over
+        frames 1..``frames`` (default all); NaN where a rollout diverged.
+        """
+        obs = self.problem.observations
+        frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
+        groups = ([candidates] if self.sim.device.startswith("cuda")
+                  else [row[None] for row in candidates])
+        return np.concatenate([self._losses(group, velocity, frames) for group in groups])
+
+    def _losses(self, candidates: np.ndarray, velocity: np.ndarray, frames: int) -> np.ndarray:
+        obs, s = self.problem.observations, self.settings
+        n = len(candidates)
+        batch = self._batches.get(n)
+        if batch is None:
+            batch = self._batches[n] = Simulator(self.problem.objects, self.problem.particles,
+                                                 self.problem.sim_config, n_batch=n)
+        self._apply(candidates[0], velocity)
+        batch.set_initial_velocity(self.sim.v0.numpy()[: self.sim.n_particles])
+        for name in dict.fromkeys(e.name for e in self.entries):
+            values = np.repeat(self.sim.params.get(name), n, axis=0)
+            for i, entry in enumerate(self.entries):
+                if entry.name == name:
+                    values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
+            batch.params.set(name, values)
+        try:
+            traj = batch.rollout(frames)
+        except SimulationDiverged as error:
+            _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
+            return np.full(n, np.nan)
+        return np.array([np.mean([geometry_loss(traj[f, b].astype(np.float64), self.index,
+                                                obs.points[f], s.per_object_loss)[0]
+                                  for f in range(1, frames + 1)]) for b in range(n)])
+
     def _search(self, velocity: np.ndarray) -> np.ndarray:
         """Coordinate search over every free entry (see the module docstring); return u."""
-        s, obs = self.settings, self.problem.observations
+        s = self.settings
         u = self._pack()
         if s.search_points < 2 or s.search_rounds < 1:
             return u
-        frames = min(s.search_frames or obs.n_frames - 1, obs.n_frames - 1)
-        batch = Simulator(self.problem.objects, self.problem.particles, self.problem.sim_config,
-                          n_batch=s.search_points)
         for round_ in range(s.search_rounds):
             for i, entry in enumerate(self.entries):
                 half = (s.search_decades * np.log(10.0) if entry.coordinate.kind == "log" else 2.0)
                 grid = u[i] + half / 3**round_ * np.linspace(-1.0, 1.0, s.search_points)
-                self._apply(u, velocity)
-                batch.set_initial_velocity(self.sim.v0.numpy()[: self.sim.n_particles])
-                for name in dict.fromkeys(e.name for e in self.entries):
-                    batch.params.set(name, np.repeat(self.sim.params.get(name), s.search_points,
-                                                     axis=0))
-                values = batch.params.get(entry.name)
-                for b, candidate in enumerate(grid):
-                    values[(b,) + entry.index[1:]] = entry.coordinate.to_theta(candidate)
-                batch.params.set(entry.name, values)
-                try:
-                    traj = batch.rollout(frames)
-                except SimulationDiverged as error:
-                    _LOG.warning("search over %s skipped: %s", entry.label, error)
+                candidates = np.repeat(u[None], s.search_points, axis=0)
+                candidates[:, i] = grid
+                losses = self.batch_losses(candidates, velocity, s.search_frames)
+                if np.all(np.isnan(losses)):
                     continue
-                losses = [np.mean([geometry_loss(traj[f, b].astype(np.float64), self.index,
-                                                 obs.points[f], s.per_object_loss)[0]
-                                   for f in range(1, frames + 1)])
-                          for b in range(s.search_points)]
-                u[i] = grid[int(np.argmin(losses))]
+                u[i] = grid[int(np.nanargmin(losses))]
                 _LOG.info("search round %d: %s = %.4g (loss %.3g)", round_ + 1, entry.label,
-                          float(entry.coordinate.to_theta(u[i])), min(losses))
+                          float(entry.coordinate.to_theta(u[i])), np.nanmin(losses))
         self._apply(u, velocity)
         return u
 
@@ -278,9 +306,9 @@ class Identifier:
     def run(self) -> FitResult:
         obs, s = self.problem.observations, self.settings
         n = obs.n_frames - 1
-        g = self.sim.params.get("gravity.g")[0] if "gravity.g" in self.sim.params else np.zeros(3)
         velocity = np.zeros((obs.n_objects, 6))
-        velocity[:, :3] = obs.initial_velocities(g, frames=2)
+        velocity[:, :3] = obs.initial_velocities()
+        moving = np.linalg.norm(velocity[:, :3], axis=1) > 0
         u = self._pack()
         adam = _Adam(np.r_[np.full(len(u), s.learning_rate),
                            np.full(velocity.size, s.velocity_learning_rate)])
@@ -297,7 +325,8 @@ class Identifier:
         stages = [h if 0 < h < n else n for h in s.curriculum]
         for stage in range(stage0, len(stages)):
             length = stages[stage]
-            starts = sorted({int(round(x)) for x in np.linspace(0, n - length, min(WINDOWS, n - length + 1))})
+            starts = sorted({int(round(x)) for x in np.linspace(0, n - length,
+                                                                 min(s.windows, n - length + 1))})
             if length == n:
                 starts = [0]
             anchor: dict[int, SimState] = {}
@@ -318,6 +347,7 @@ class Identifier:
                     continue
                 if not s.fit_velocity:
                     dv[:] = 0.0
+                dv[~moving] = 0.0  # an object found at rest stays at rest at t = 0
                 step = adam.step(np.concatenate([du, dv.ravel()]))
                 u, velocity = u + step[: len(u)], velocity + step[len(u):].reshape(velocity.shape)
                 record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
@@ -344,7 +374,7 @@ class Identifier:
             "free": [e.label for e in self.entries], "frames": obs.n_frames,
             "frame_dt": obs.frame_dt, "particles": int(len(self.index)),
             "centroids": np.round(np.nan_to_num(self.observed_centroids), 6).tolist(),
-            "settings": [self.settings.curriculum, self.settings.iterations],
+            "settings": [self.settings.curriculum, self.settings.iterations, self.settings.windows],
         })
         return hashlib.sha256(text.encode()).hexdigest()
 

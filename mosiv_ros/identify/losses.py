@@ -69,7 +69,7 @@ def geometry_loss(x: np.ndarray, object_index: np.ndarray, observed: list[np.nda
 
 def _soft_mask(uv: torch.Tensor, sigma: torch.Tensor, height: int, width: int) -> torch.Tensor:
     """A = 1 - prod_i (1 - opacity w_i(p)) over pixels p, Gaussian w_i within 3 sigma."""
-    reach = int(np.clip(np.ceil(3 * float(sigma.max())), 1, 8))
+    reach = int(np.clip(np.ceil(3 * float(sigma.detach().max())), 1, 8))
     offsets = torch.arange(-reach, reach + 1, dtype=uv.dtype)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
     base = torch.round(uv.detach())

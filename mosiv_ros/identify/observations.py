@@ -16,6 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+MOTION_GAIN = 4.0
+"""How much better (residual ratio) a moving fit must be than rest to be believed."""
+NOISE_FLOOR = 0.001
+"""Centroid noise (m) of a reconstruction that a motion must explain beyond."""
+
 
 @dataclass
 class View:
@@ -79,12 +84,16 @@ class Observations:
                     out[f, k] = pts.mean(axis=0)
         return out
 
-    def initial_velocities(self, gravity: np.ndarray, frames: int = 3) -> np.ndarray:
-        """(K, 3) centroid velocity at t = 0 from a constant-acceleration fit to the first frames.
+    def initial_velocities(self, frames: int = 4) -> np.ndarray:
+        """(K, 3) centroid velocity at t = 0 from the first ``frames`` frames.
 
-        The acceleration is fixed to ``gravity``: x(t) = x0 + v0 t + g t^2 / 2, fitted by least
-        squares over the first ``frames`` frames in which the object is seen (an object resting
-        on support fits v0 ~ 0 because its centroid does not move either way).
+        Two motions are fitted to each object's centroids by least squares: at rest (x = x0)
+        and uniformly accelerated (x = x0 + v0 t + a t^2 / 2, a free: gravity in flight,
+        friction when sliding; a constant-velocity fit would return the mean velocity of a
+        decelerating object). Rest is kept unless the motion fits more than ``MOTION_GAIN``
+        times better (plus a millimetre of reconstruction noise per frame): a resting object's
+        hull jitters as others move past it, and a difference of frames would read that as a
+        velocity.
         """
         c = self.centroids()[:frames]
         t = np.arange(len(c)) * self.frame_dt
@@ -93,10 +102,14 @@ class Observations:
             seen = ~np.isnan(c[:, k, 0])
             if seen.sum() < 2:
                 continue
-            tk = t[seen]
-            residual = c[seen, k] - 0.5 * np.outer(tk**2, gravity)
-            A = np.stack([np.ones_like(tk), tk], axis=1)
-            v0[k] = np.linalg.lstsq(A, residual, rcond=None)[0][1]
+            tk, ck = t[seen], c[seen, k]
+            rest = float(np.sum((ck - ck.mean(axis=0)) ** 2))
+            columns = [np.ones_like(tk), tk] + ([0.5 * tk**2] if len(tk) >= 3 else [])
+            A = np.stack(columns, axis=1)
+            coef = np.linalg.lstsq(A, ck, rcond=None)[0]
+            moving = float(np.sum((A @ coef - ck) ** 2))
+            if moving < rest / MOTION_GAIN - len(tk) * NOISE_FLOOR**2:
+                v0[k] = coef[1]
         return v0
 
     def select(self, frames: slice) -> Observations:

@@ -36,12 +36,15 @@ LATCHED_QOS = QoSProfile(
 )
 #: Camera streams (DESIGN.md: the sensor-data profile).
 SENSOR_QOS = qos_profile_sensor_data
-#: Per-frame pipeline streams: every frame matters to the next stage.
+#: Per-frame pipeline streams: every frame matters to the next stage, also to a stage that
+#: starts late (identify_node needs the whole window): reliable, and transient_local with the
+#: last STREAM_HISTORY messages (30 s at 30 fps) kept for late subscribers.
+STREAM_HISTORY = 1000
 STREAM_QOS = QoSProfile(
     history=HistoryPolicy.KEEP_LAST,
-    depth=100,
+    depth=STREAM_HISTORY,
     reliability=ReliabilityPolicy.RELIABLE,
-    durability=DurabilityPolicy.VOLATILE,
+    durability=DurabilityPolicy.TRANSIENT_LOCAL,
 )
 
 _PARAMETER_TYPES = {

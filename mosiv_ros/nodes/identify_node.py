@@ -1,43 +1,128 @@
 """identify_node: observed geometry and particles in, per-object material estimates out (stage 3).
 
-Subscribes to ``/mosiv/observed_objects`` and ``/mosiv/particles`` (latched); publishes
-``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched) and progress on
-``/diagnostics``. Until the identification core exists it logs what it receives.
+Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set) and ``/mosiv/particles``
+(latched). Once it has the particles and ``window`` frames from the particles' frame on (with
+``window`` 0: at least two frames and ``idle_timeout`` seconds without a new one; with a window
+that the stream never fills: three times that), it runs the core's
+``identify_objects`` in a worker thread, reporting progress on ``/diagnostics`` and in its log,
+then publishes ``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one
+status per object named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``)
+and writes the estimates to ``output_yaml`` (which prediction_node also reads). A failed fit is
+published as ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
+silhouettes stay with the reconstruction (``mosiv run`` uses both).
 """
 
 from __future__ import annotations
+
+import threading
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.config import IdentifyConfig, LiftingConfig
+from mosiv_ros.identify.run import identify_objects
 from mosiv_ros.io.messages import pointcloud_from_msg
-from mosiv_ros.nodes.common import (
-    LATCHED_QOS,
-    STREAM_QOS,
-    declare_config,
-    guarded,
-    log_cloud,
-    main_for,
-)
+from mosiv_ros.io.recording import PointCloud
+from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
+from mosiv_ros.nodes.outputs import diagnostics_msg
+from mosiv_ros.recon.reconstruct import ObservedFrame
 
 NAME = "identify_node"
 SUMMARY = "fit per-object material parameters with the differentiable MPM simulator"
 
 
 class IdentifyNode(Node):
+    """Thin shell: gathers the window, runs the core's identification, publishes estimates."""
+
     def __init__(self) -> None:
         super().__init__(NAME)
         self.config: IdentifyConfig = declare_config(self, IdentifyConfig)
+        self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         self.estimates_pub = self.create_publisher(
             DiagnosticArray, "/mosiv/material_estimates", LATCHED_QOS)
         self.progress_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-        for topic, qos in (("/mosiv/observed_objects", STREAM_QOS), ("/mosiv/particles", LATCHED_QOS)):
-            self.create_subscription(
-                PointCloud2, topic,
-                guarded(self, topic, pointcloud_from_msg, lambda c, t=topic: log_cloud(self, t, c)),
-                qos)
+        self.frames: dict[int, ObservedFrame] = {}
+        self.particles: LiftedParticles | None = None
+        self.last_frame = time.monotonic()
+        self.worker: threading.Thread | None = None
+        self.create_subscription(
+            PointCloud2, "/mosiv/observed_objects",
+            guarded(self, "/mosiv/observed_objects", pointcloud_from_msg, self._on_observed), STREAM_QOS)
+        self.create_subscription(
+            PointCloud2, "/mosiv/particles",
+            guarded(self, "/mosiv/particles", pointcloud_from_msg, self._on_particles), LATCHED_QOS)
+        self.create_timer(0.5, self._maybe_start)
+        if self.config.silhouette_weight > 0:
+            self.get_logger().info("the topic graph carries no silhouettes: fitting the 3D loss")
+
+    def _on_observed(self, cloud: PointCloud) -> None:
+        if self.worker is not None:
+            return
+        try:
+            frame = ObservedFrame.from_cloud(cloud)
+        except ValueError as error:
+            self.get_logger().error(f"/mosiv/observed_objects: dropped malformed cloud: {error}")
+            return
+        self.frames[frame.stamp_ns] = frame
+        self.last_frame = time.monotonic()
+
+    def _on_particles(self, cloud: PointCloud) -> None:
+        lifting = LiftingConfig()
+        try:
+            self.particles = LiftedParticles.from_cloud(cloud, lifting.boundary_beta, lifting.boundary_eps)
+        except ValueError as error:
+            self.get_logger().error(f"/mosiv/particles: dropped malformed cloud: {error}")
+            return
+        self.get_logger().info(f"/mosiv/particles: {self.particles.summary()}")
+
+    def _window(self) -> list[ObservedFrame]:
+        start = self.particles.stamp_ns if self.particles is not None else 0
+        return [f for stamp, f in sorted(self.frames.items()) if stamp >= start]
+
+    def _maybe_start(self) -> None:
+        if self.worker is not None or self.particles is None:
+            return
+        frames = self._window()
+        quiet = time.monotonic() - self.last_frame
+        window = self.config.window
+        if window and len(frames) >= window:
+            frames = frames[:window]
+        elif len(frames) < 2 or quiet <= self.config.idle_timeout * (3 if window else 1):
+            return  # with a window: wait for it unless the stream has clearly ended
+        elif window:
+            self.get_logger().warning(f"the stream went quiet after {len(frames)} of the {window} "
+                                      "frames of the window; fitting those")
+        self.get_logger().info(f"fitting {len(frames)} frames from stamp {frames[0].stamp_ns} ns")
+        self.worker = threading.Thread(target=self._fit, args=(frames,), daemon=True)
+        self.worker.start()
+
+    def _fit(self, frames: list[ObservedFrame]) -> None:
+        started = time.monotonic()
+
+        def progress(record: dict) -> None:
+            pairs = [("stage", str(record["stage"])), ("window", str(record["window"])),
+                     ("iteration", str(record["iteration"])), ("loss", f"{record['loss']:.6g}"),
+                     ("elapsed_s", f"{time.monotonic() - started:.1f}")]
+            self.progress_pub.publish(diagnostics_msg(
+                [("mosiv/identify", "", "OK", "fitting", pairs)], self.get_clock().now().nanoseconds))
+            self.get_logger().info(f"stage {record['stage']} (window {record['window']}) iteration "
+                                   f"{record['iteration']}: loss {record['loss']:.4g}")
+
+        identification = identify_objects(frames, self.particles, self.scene, self.config,
+                                          progress=progress)
+        estimates = identification.estimates
+        self.estimates_pub.publish(diagnostics_msg(estimates.statuses(), estimates.stamp_ns))
+        if self.config.output_yaml:
+            path = estimates.write(self.config.output_yaml)
+            self.get_logger().info(f"estimates written to {path}")
+        for obj in estimates.objects:
+            values = ", ".join(f"{k}={v:.4g}" for k, v in obj.params.items())
+            self.get_logger().info(f"estimate {obj.name} ({obj.family}) {obj.level}: {values}")
+        self.get_logger().info(f"identification done in {time.monotonic() - started:.1f} s")
 
 
 def main(args: list[str] | None = None) -> int:

@@ -91,6 +91,22 @@ class ObservedFrame:
         return PointCloud(np.concatenate(xyz), np.concatenate(ids),
                           {VOXEL_FIELD: np.concatenate(sizes)}, stamp_ns=self.stamp_ns)
 
+    @classmethod
+    def from_cloud(cls, cloud: PointCloud) -> ObservedFrame:
+        """An ``/mosiv/observed_objects`` cloud back as a frame (without masks)."""
+        if VOXEL_FIELD not in cloud.fields:
+            raise ValueError(f"observed cloud lacks the field {VOXEL_FIELD!r}")
+        sizes = np.asarray(cloud.fields[VOXEL_FIELD], dtype=np.float64)
+        objects = {}
+        for object_id in np.unique(cloud.object_id).tolist():
+            mine = cloud.object_id == object_id
+            voxel = mine & (sizes > 0)
+            size = float(sizes[voxel][0]) if voxel.any() else 0.0
+            objects[int(object_id)] = ObjectGeometry(int(object_id), cloud.xyz[voxel].astype(np.float64),
+                                                     cloud.xyz[mine & (sizes == 0)].astype(np.float64),
+                                                     size)
+        return cls(cloud.stamp_ns, objects)
+
     def summary(self) -> str:
         """One line: per object voxels, surface points and volume; the time taken."""
         parts = [f"{i} ({len(g.occupancy)} voxels, {len(g.surface)} surface pts, "

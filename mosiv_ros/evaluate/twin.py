@@ -1,0 +1,162 @@
+"""How well a digital twin reproduces a recording, on the fitted frames and on held-out ones.
+
+For every frame of the recording (the twin's frames are the observation frames), per object:
+
+- 3D: CD and EMD between the twin's particles and the reconstructed occupancy, and, for a
+  synthetic recording, between the twin's particles and the ground-truth particles;
+- 2D: the twin re-rendered with the synthetic recorder's renderer (objects coloured with their
+  mean observed colour in the first frame) against each camera's image: silhouette IoU per
+  object, PSNR and SSIM per view.
+
+Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
+compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
+bulk modulus, viscosity), absolute difference for nu, relative difference otherwise.
+
+What it is for: the report of ``mosiv run`` and the identification benchmark.
+What it is not for: losses (``identify.losses``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mosiv_ros.evaluate.metrics import chamfer_distance, emd, iou, psnr, ssim
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.io.recording import Recording, match_frames
+from mosiv_ros.predict.twin import Prediction
+from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
+
+LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
+EMD_EVERY = 3
+"""EMD (an exact assignment) on every third frame only."""
+SPLAT_RADIUS = 0.8
+"""Rendered particle radius in particle spacings, as the synthetic recorder draws them."""
+
+
+@dataclass
+class FrameScores:
+    """Scores of one frame: per object id CD/EMD (m), IoU; per view PSNR (dB), SSIM."""
+
+    index: int
+    t: float
+    future: bool
+    cd: dict[int, float] = field(default_factory=dict)
+    emd: dict[int, float] = field(default_factory=dict)
+    cd_truth: dict[int, float] = field(default_factory=dict)
+    iou: dict[int, float] = field(default_factory=dict)
+    psnr: dict[str, float] = field(default_factory=dict)
+    ssim: dict[str, float] = field(default_factory=dict)
+
+
+def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], recording: Recording,
+                 fitted_frames: int, spacing: float, truth=None, render: bool = True
+                 ) -> list[FrameScores]:
+    """Scores of every observed frame that the prediction covers."""
+    images = _images_by_stamp(recording)
+    colours = _colours(frames[0], recording, prediction.object_ids) if render else {}
+    ground = recording.scene.ground or {}
+    floor = Floor(float(ground.get("height", 0.0)), tuple(ground.get("normal", (0, 0, 1)))) \
+        if recording.scene.ground is not None else None
+    scores = []
+    for f, frame in enumerate(frames):
+        if f >= len(prediction.times):
+            break
+        x = prediction.positions[f]
+        s = FrameScores(f, float(prediction.times[f]), f >= fitted_frames)
+        for k, object_id in enumerate(prediction.object_ids):
+            mine = x[prediction.object_index == k]
+            geometry = frame.objects.get(object_id)
+            if geometry is not None and len(geometry.occupancy):
+                s.cd[object_id] = chamfer_distance(mine, geometry.occupancy)
+                if f % EMD_EVERY == 0:
+                    s.emd[object_id] = emd(mine, geometry.occupancy)
+            if truth is not None and f < len(truth.positions):
+                s.cd_truth[object_id] = chamfer_distance(mine, truth.of_object(object_id)[f])
+        if render and frame.stamp_ns in images:
+            _score_views(s, x, prediction, colours, images[frame.stamp_ns], recording, spacing, floor)
+        scores.append(s)
+    return scores
+
+
+def summarise(scores: Sequence[FrameScores]) -> dict:
+    """Means over the observed and the future frames (and per object) of every score."""
+    out = {}
+    for part, chosen in (("observed", [s for s in scores if not s.future and s.index > 0]),
+                         ("future", [s for s in scores if s.future])):
+        if not chosen:
+            continue
+        entry = {"frames": len(chosen)}
+        for key in ("cd", "emd", "cd_truth", "iou", "psnr", "ssim"):
+            values = [v for s in chosen for v in getattr(s, key).values() if math.isfinite(v)]
+            if values:
+                entry[key] = float(np.mean(values))
+            per = {}
+            for s in chosen:
+                for name, v in getattr(s, key).items():
+                    per.setdefault(str(name), []).append(v)
+            if key in ("cd", "cd_truth", "iou") and per:
+                entry[f"{key}_per_object"] = {n: float(np.mean(v)) for n, v in per.items()}
+        out[part] = entry
+    return out
+
+
+def parameter_errors(estimates: Estimates, truth: dict) -> dict[str, dict[str, dict]]:
+    """Per object name, per parameter: estimate, truth and the error measure of its kind."""
+    true_objects = {o["name"]: o for o in truth.get("objects", [])}
+    errors: dict[str, dict[str, dict]] = {}
+    for obj in estimates.objects:
+        actual = true_objects.get(obj.name, {}).get("params", {})
+        for name, value in obj.params.items():
+            if name not in actual:
+                continue
+            t = float(actual[name])
+            if name in LOG_SCALE:
+                kind, error = "log10_ratio", math.log10(value / t) if value > 0 and t > 0 else math.inf
+            elif name == "nu":
+                kind, error = "abs", value - t
+            else:
+                kind, error = "rel", (value - t) / t if t else math.inf
+            errors.setdefault(obj.name, {})[name] = {"estimate": value, "truth": t, kind: error}
+    return errors
+
+
+def _images_by_stamp(recording: Recording) -> dict[int, dict]:
+    sets = match_frames(recording.cameras)
+    return {s.stamp_ns: s.frames for s in sets}
+
+
+def _colours(frame: ObservedFrame, recording: Recording, ids: Sequence[int]) -> dict[int, np.ndarray]:
+    """Mean observed colour of each object in the first frame, over all cameras."""
+    sets = _images_by_stamp(recording)
+    images = sets.get(frame.stamp_ns, {})
+    colours = {}
+    for object_id in ids:
+        pixels = [img.rgb[img.mask == object_id] for img in images.values()]
+        pixels = [p for p in pixels if len(p)]
+        colours[object_id] = (np.concatenate(pixels).mean(axis=0) if pixels
+                              else np.array([128.0, 128.0, 128.0]))
+    return colours
+
+
+def _score_views(s: FrameScores, x: np.ndarray, prediction: Prediction, colours: dict,
+                 images: dict, recording: Recording, spacing: float, floor) -> None:
+    labels = np.asarray(prediction.object_ids)[prediction.object_index]
+    normals = surface_normals(x, prediction.object_index, spacing)
+    albedo = np.stack([colours[i] for i in labels]) if len(labels) else np.zeros((0, 3))
+    splats = Splats(x, labels.astype(np.uint16), albedo, normals, SPLAT_RADIUS * spacing)
+    per_object: dict[int, list[float]] = {}
+    for name, image in images.items():
+        camera = recording.cameras[name]
+        rgb, mask, _ = render_view(camera.intrinsics, camera.T_world_optical, splats, floor)
+        s.psnr[name] = psnr(rgb, image.rgb)
+        s.ssim[name] = ssim(rgb, image.rgb)
+        for object_id in prediction.object_ids:
+            a, b = mask == object_id, image.mask == object_id
+            if a.any() or b.any():
+                per_object.setdefault(object_id, []).append(iou(a, b))
+    s.iou = {i: float(np.mean(v)) for i, v in per_object.items()}

@@ -1,0 +1,201 @@
+"""From stage 1-2 outputs and a scene declaration to a ``FitProblem`` for the identifier.
+
+Turns the observed frames (``recon.ObservedFrame``: per-object occupancy per frame, filtered
+masks), the particles lifted from the first frame (``lifting.LiftedParticles``), the camera
+calibration and the scene declaration into what ``identify.fit`` needs:
+
+- observations: per object its occupied voxel centres per frame (volumes, like the simulated
+  particles), the frames' masks and cameras for the silhouette loss; frames must be evenly
+  spaced (their median spacing is the simulation's frame time);
+- the simulator set-up: grid spacing twice the particle spacing, a domain around everything
+  observed (and the floor), the declared ground (friction 0.5 to start with unless declared),
+  gravity (declared or (0, 0, -9.81)), the declared effects with their declared values, and the
+  gripper as a kinematic collider along its recorded poses;
+- the free parameters: for each object the parameters its family uses that the declaration does
+  not give (density stays at its declared or default value: geometry alone cannot tell mass),
+  each object's friction only when there are other objects to touch, and the ground friction
+  unless declared.
+
+What it is for: the glue between stages. What it is not for: fitting (``identify.fit``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from mosiv_ros.identify.fit import FitProblem
+from mosiv_ros.identify.observations import Observations, View
+from mosiv_ros.io.recording import Recording
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.lifting.simulation import to_sim_particles
+from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.sim import (
+    BUILTIN_EFFECTS,
+    Collider,
+    Gravity,
+    Ground,
+    ObjectModel,
+    SimConfig,
+    domain_around,
+)
+from mosiv_ros.sim.materials import FAMILY_PARAMS
+
+_LOG = logging.getLogger(__name__)
+
+DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
+SENSOR_EFFECTS = ("camera_time_offset", "mask_noise")
+"""Declared effects that act on the observations, not on the simulated motion."""
+FRAME_SPACING_TOLERANCE = 0.1
+"""Largest deviation of a frame spacing from the median, as a fraction of it."""
+
+
+class ProblemError(ValueError):
+    """The stage outputs cannot make a fit problem (uneven frames, unknown object, ...)."""
+
+
+@dataclass
+class ProblemOptions:
+    """Choices the caller makes: the family of undeclared objects and the domain margin."""
+
+    default_family: str = "elastic"
+    margin: float = 0.1
+    use_masks: bool = True
+
+
+def views_of(recording: Recording) -> list[View]:
+    """The recording's cameras as identify views (pinhole; distortion must be absent)."""
+    views = []
+    for name, camera in sorted(recording.cameras.items()):
+        k = camera.intrinsics
+        if np.any(k.D):
+            _LOG.warning("camera %s has lens distortion; the silhouette loss ignores it", name)
+        views.append(View(name, k.K, camera.T_world_optical, k.width, k.height))
+    return views
+
+
+def frame_spacing(stamps_ns: Sequence[int]) -> float:
+    """The median spacing (s) of evenly spaced stamps; ProblemError if they are not even."""
+    if len(stamps_ns) < 2:
+        raise ProblemError(f"need at least 2 observed frames, got {len(stamps_ns)}")
+    gaps = np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9
+    median = float(np.median(gaps))
+    worst = int(np.argmax(np.abs(gaps - median)))
+    if median <= 0 or abs(gaps[worst] - median) > FRAME_SPACING_TOLERANCE * median:
+        raise ProblemError(
+            f"observed frames are not evenly spaced: frames {worst} and {worst + 1} are "
+            f"{gaps[worst] * 1e3:.1f} ms apart, the median spacing is {median * 1e3:.1f} ms "
+            "(a frame was dropped? the fit needs one simulation frame per observed frame)")
+    return median
+
+
+def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
+                  views: Sequence[View] = (), gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
+                  options: ProblemOptions | None = None) -> FitProblem:
+    """The fit problem of a window of observed frames, starting at ``frames[0]``."""
+    options = options or ProblemOptions()
+    particles, ids = to_sim_particles(lifted)
+    declared = {o.id: o for o in scene.objects}
+    objects, free = [], []
+    for object_id in ids:
+        item = declared.get(object_id)
+        family = item.family if item is not None else options.default_family
+        name = item.name if item is not None else f"object_{object_id}"
+        known = dict(item.params) if item is not None else {}
+        if "friction_angle_deg" in known:  # the user-facing unit of a friction angle
+            known["friction_angle"] = np.radians(known.pop("friction_angle_deg"))
+        objects.append(ObjectModel(name, family, known, id=object_id))
+        for param in FAMILY_PARAMS[family]:
+            if param == "density" or param in known or (param == "friction" and len(ids) < 2):
+                continue
+            if param not in free:
+                free.append(param)
+    stamps = [f.stamp_ns for f in frames]
+    frame_dt = frame_spacing(stamps)
+    points = [[_points(frame, object_id) for object_id in ids] for frame in frames]
+    masks = [dict(frame.masks) for frame in frames] if options.use_masks else []
+    observations = Observations(frame_dt, points, list(ids), list(views), masks, stamps[0])
+    ground = ground_of(scene)
+    if ground is not None and "friction" not in (scene.ground or {}):
+        free.append("ground.friction")
+    everything = np.concatenate([particles.x] + [p for frame in points for p in frame if len(p)])
+    spacing = lifted.lattice_volume ** (1 / 3)
+    dx = 2.0 * spacing
+    lo, hi = domain_around(everything, dx, options.margin,
+                           floor=ground.height if ground is not None else None)
+    config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=frame_dt, ground=ground,
+                       effects=effects_of(scene, objects),
+                       colliders=_colliders(scene, gripper_poses, stamps[0]))
+    fixed = {o.name: set(o.params) for o in objects}  # declared values stay as declared
+    problem = FitProblem(objects, particles, observations, config, free, fixed)
+    _LOG.info("fit problem: %d objects (%s), %d particles, %d frames at %.1f fps, dx %.3f m, "
+              "free: %s", len(objects), ", ".join(f"{o.name}: {o.family}" for o in objects),
+              len(particles.x), len(frames), 1 / frame_dt, dx, ", ".join(free))
+    return problem
+
+
+def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:
+    geometry = frame.objects.get(object_id)
+    if geometry is None:
+        return np.zeros((0, 3))
+    return np.asarray(geometry.occupancy, dtype=np.float64)
+
+
+def ground_of(scene: Scene) -> Ground | None:
+    """The declared ground plane (friction 0.5 unless declared), or None."""
+    if scene.ground is None:
+        return None
+    g = scene.ground
+    return Ground(height=float(g.get("height", 0.0)),
+                  normal=tuple(g.get("normal", (0.0, 0.0, 1.0))),
+                  friction=float(g.get("friction", 0.5)))
+
+
+def effects_of(scene: Scene, objects: Sequence[ObjectModel]) -> list:
+    """Gravity (declared or DEFAULT_GRAVITY) and the declared simulator effects, as declared."""
+    names = [o.name for o in objects]
+    effects = []
+    declared = {e.name: e for e in scene.effects}
+    gravity = declared.pop("gravity", None)
+    effects.append(Gravity(g=tuple(gravity.params.get("g", DEFAULT_GRAVITY)) if gravity
+                           else DEFAULT_GRAVITY))
+    for name, effect in declared.items():
+        if name in SENSOR_EFFECTS:
+            continue
+        if name not in BUILTIN_EFFECTS:
+            raise ProblemError(f"declared effect {name!r} is not a simulator effect "
+                               f"(known: {', '.join(sorted(BUILTIN_EFFECTS))})")
+        values = {key: _per_object(value, names) for key, value in effect.params.items()}
+        effects.append(BUILTIN_EFFECTS[name](**values))
+    return effects
+
+
+def _per_object(value, names: Sequence[str]):
+    if isinstance(value, Mapping):
+        unknown = sorted(set(value) - set(names))
+        if unknown:
+            raise ProblemError(f"effect parameter for unknown object(s) {unknown}")
+        return [[float(value.get(n, 0.0)) for n in names]]
+    return value
+
+
+def _colliders(scene: Scene, poses: Sequence[tuple[int, np.ndarray]], start_ns: int) -> list[Collider]:
+    if scene.gripper is None or not poses:
+        return []
+    g = scene.gripper
+    shape = g["shape"]
+    size = {"sphere": lambda: (g["radius"],), "box": lambda: tuple(g["half_extents"]),
+            "capsule": lambda: (g["radius"], g["half_length"])}
+    if shape not in size:
+        raise ProblemError(f"gripper shape {shape!r} is not a simulator collider "
+                           "(sphere, box, capsule)")
+    times = np.array([(stamp - start_ns) * 1e-9 for stamp, _ in poses])
+    positions = np.array([T[:3, 3] for _, T in poses])
+    quaternions = Rotation.from_matrix(np.array([T[:3, :3] for _, T in poses])).as_quat()
+    return [Collider(shape, size[shape](), times, positions, quaternions,
+                     friction=float(g.get("friction", 0.5)), name="gripper")]

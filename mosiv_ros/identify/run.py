@@ -1,0 +1,87 @@
+"""Stage 3 as one call: observed frames + lifted particles + scene -> estimates.
+
+``identify_objects`` is what both ``mosiv run`` (``mosiv_ros.pipeline``) and ``identify_node``
+do: build the fit problem from the frames (the first ``config.window`` of them, or all), fit,
+estimate the uncertainty, and turn the result into ``Estimates``. A failed fit (a simulation
+that keeps diverging, a problem that cannot be built) is reported as ERROR estimates rather than
+raised, so that a node keeps running and a late subscriber learns what went wrong.
+
+What it is for: the stage as a unit. What it is not for: its parts (``problem``, ``fit``,
+``estimates``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
+from mosiv_ros.identify.fit import FitResult, FitSettings, Identifier
+from mosiv_ros.identify.observations import View
+from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.sim.errors import SimulationError
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class Identification:
+    """What stage 3 produced: the estimates, and (when the fit ran) the fit itself."""
+
+    estimates: Estimates
+    identifier: Identifier | None = None
+    result: FitResult | None = None
+    window: int = 0
+
+
+def fit_settings(config: IdentifyConfig) -> FitSettings:
+    """The identifier's settings from identify_node's parameters."""
+    return FitSettings(
+        curriculum=list(config.curriculum), iterations=config.iterations,
+        learning_rate=config.learning_rate, velocity_learning_rate=config.velocity_learning_rate,
+        chamfer_weight=config.chamfer_weight, silhouette_weight=config.silhouette_weight,
+        per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
+        windows=config.windows, search_points=config.search_points,
+        search_rounds=config.search_rounds, search_frames=config.search_frames)
+
+
+def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
+                     config: IdentifyConfig, views: Sequence[View] = (),
+                     gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
+                     progress: Callable[[dict], None] | None = None) -> Identification:
+    """Fit the objects of ``frames`` (from the lifted frame on); see the module docstring."""
+    frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
+    window = min(config.window or len(frames), len(frames))
+    try:
+        options = ProblemOptions(use_masks=config.silhouette_weight > 0 and bool(views))
+        problem = build_problem(frames[:window], lifted, scene, views, gripper_poses, options)
+        problem.sim_config.device = config.device
+        identifier = Identifier(problem, fit_settings(config), progress)
+        result = identifier.run()
+        std = coordinate_std(identifier, result) if config.uncertainty else None
+        return Identification(estimates_of(identifier, result, std), identifier, result, window)
+    except (ProblemError, SimulationError, ValueError) as error:
+        _LOG.error("identification failed: %s", error)
+        return Identification(failed_estimates(lifted, scene, str(error), frames), window=window)
+
+
+def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,
+                     frames: Sequence[ObservedFrame]) -> Estimates:
+    """ERROR estimates of every lifted object, saying why the fit failed."""
+    declared = {o.id: o for o in scene.objects}
+    objects = []
+    for object_id in lifted.object_ids:
+        item = declared.get(object_id)
+        objects.append(ObjectEstimate(object_id, item.name if item else f"object_{object_id}",
+                                      item.family if item else "unknown", {}, level=ERROR,
+                                      message=f"fit failed: {reason}"))
+    start = frames[0].stamp_ns if frames else lifted.stamp_ns
+    return Estimates(objects, stamp_ns=start, frames=len(frames), scene_level=ERROR,
+                     scene_message=f"fit failed: {reason}")

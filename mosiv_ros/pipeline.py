@@ -1,0 +1,168 @@
+"""The whole pipeline in-process: a recording in, a digital twin, estimates and a report out.
+
+``run(bag, out, config)`` = ``mosiv run BAG --out DIR``: reconstruct every frame set (stage 1),
+lift the first complete one (stage 2), fit the objects' parameters on the first frames (stage
+3; the last ``holdout`` of the recording is kept out of the fit), estimate their uncertainty,
+roll the identified twin over the whole recording and ``horizon`` seconds past it, score it
+against the reconstruction (and the ground truth of a synthetic recording), and write
+``estimates.yaml`` (a prediction_node params file), ``report.json``, ``report.md`` and plots.
+The ROS nodes run the same stages on live topics; this is the same code without a ROS graph.
+
+What it is for: the command line and tests. What it is not for: algorithms (each stage's
+package has them).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from mosiv_ros.config import IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
+from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.problem import views_of
+from mosiv_ros.identify.run import identify_objects
+from mosiv_ros.io.bag import read_recording
+from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.recording import Recording
+from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
+from mosiv_ros.predict.twin import Twin
+from mosiv_ros.recon.reconstruct import ObservedFrame, iter_reconstruct
+from mosiv_ros.report import write_report
+from mosiv_ros.sim.errors import SimulationError
+
+_LOG = logging.getLogger(__name__)
+
+
+@dataclass
+class RunConfig:
+    """Every stage's settings (the node parameters) plus the held-out part of the recording."""
+
+    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
+    lifting: LiftingConfig = field(default_factory=LiftingConfig)
+    identify: IdentifyConfig = field(default_factory=IdentifyConfig)
+    prediction: PredictionConfig = field(default_factory=PredictionConfig)
+    holdout: float = 0.3
+    """Fraction of the recording's frames kept out of the fit, to score predictions on."""
+    render: bool = True
+    """Score 2D metrics (IoU, PSNR, SSIM) by re-rendering the twin."""
+
+
+@dataclass
+class RunResult:
+    estimates: Estimates
+    report: dict
+    out: Path
+
+
+@dataclass
+class Prepared:
+    """Stages 1-2 of a recording.
+
+    The recording, its observed frames from the lifted one on, the lifted particles, and the
+    time they took.
+    """
+
+    bag: Path
+    recording: Recording
+    frames: list[ObservedFrame]
+    lifted: LiftedParticles
+    timing: dict[str, float]
+
+
+def prepare(bag: str | Path, config: RunConfig,
+            progress: Callable[[str, int, int], None] | None = None) -> Prepared:
+    """Reconstruct every frame set and lift the first complete one."""
+    timing: dict[str, float] = {}
+    tick = time.perf_counter()
+    recording = read_recording(bag)
+    frames = []
+    n_sets = min(len(c.frames) for c in recording.cameras.values())
+    for frame in iter_reconstruct(recording, config.reconstruction, recording.scene):
+        frames.append(frame)
+        if progress:
+            progress("reconstruct", len(frames), n_sets)
+    timing["reconstruct_s"] = time.perf_counter() - tick
+    if len(frames) < 3:
+        raise BagError(bag, None, f"only {len(frames)} frame sets: need at least 3 to fit and test")
+    tick = time.perf_counter()
+    lifted = lift_first_complete(frames, config.lifting, recording.scene)
+    timing["lift_s"] = time.perf_counter() - tick
+    _LOG.info("lifted: %s", lifted.summary())
+    frames = [f for f in frames if f.stamp_ns >= lifted.stamp_ns]
+    return Prepared(Path(bag), recording, frames, lifted, timing)
+
+
+def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
+        progress: Callable[[str, int, int], None] | None = None) -> RunResult:
+    """Run every stage on a recording; see the module docstring. progress(phase, done, total)."""
+    config = config or RunConfig()
+    prepared = prepare(bag, config, progress)
+    identify = config.identify
+    if not identify.window:
+        window = max(2, int(round(len(prepared.frames) * (1 - config.holdout))))
+        identify = replace(identify, window=window)
+    tick = time.perf_counter()
+    total = len(identify.curriculum) * identify.iterations
+    done = [0]
+
+    def fit_progress(_record: dict) -> None:
+        done[0] += 1
+        if progress:
+            progress("identify", done[0], total)
+
+    identification = identify_objects(prepared.frames, prepared.lifted, prepared.recording.scene,
+                                      identify, views_of(prepared.recording),
+                                      prepared.recording.gripper_poses, fit_progress)
+    prepared.timing["identify_s"] = time.perf_counter() - tick
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    identification.estimates.write(out / "estimates.yaml")
+    if identification.result is None:
+        raise SimulationError(f"identification failed: {identification.estimates.scene_message}")
+    result = identification.result
+    fit = {"loss": result.loss, "iterations": len(result.history), "failures": result.failures,
+           "history": [{k: v for k, v in h.items() if k != "values"} for h in result.history]}
+    return evaluate(prepared, identification.estimates, identification.window, out, config, fit)
+
+
+def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | Path,
+             config: RunConfig, fit: dict | None = None) -> RunResult:
+    """Roll the twin of ``estimates`` over the recording and past it, score it, write the report."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    timing = dict(prepared.timing)
+    tick = time.perf_counter()
+    scene = prepared.recording.scene
+    twin = Twin(prepared.lifted, estimates, scene, device=config.prediction.device)
+    seconds = (len(prepared.frames) - 1) * estimates.frame_dt + config.prediction.horizon
+    prediction = twin.predict(seconds)
+    timing["predict_s"] = time.perf_counter() - tick
+    truth, truth_particles = _ground_truth(prepared.bag)
+    tick = time.perf_counter()
+    scores = score_frames(prediction, prepared.frames, prepared.recording, window,
+                          prepared.lifted.lattice_volume ** (1 / 3), truth_particles, config.render)
+    timing["evaluate_s"] = time.perf_counter() - tick
+    report = {
+        "bag": str(prepared.bag), "frames": len(prepared.frames), "fitted_frames": window,
+        "frame_dt": estimates.frame_dt, "particles": int(len(prepared.lifted.x)),
+        "estimates": estimates.to_dict(), "metrics": summarise(scores),
+        "per_frame": [s.__dict__ for s in scores], "timing": timing, "fit": fit or {},
+    }
+    if truth is not None:
+        report["parameter_errors"] = parameter_errors(estimates, truth)
+        report["truth_effects"] = truth.get("effects", [])
+    write_report(out, report, prediction, prepared.frames, window)
+    return RunResult(estimates, report, out)
+
+
+def _ground_truth(bag: str | Path):
+    from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
+
+    try:
+        return read_ground_truth(bag), read_ground_truth_particles(bag)
+    except BagError:
+        return None, None

@@ -1,0 +1,144 @@
+"""The digital twin: the identified scene rolled forward, for planners and for evaluation.
+
+``Twin`` holds the lifted particles of the first observed frame, the identified parameters
+(``identify.estimates.Estimates``: material parameters, initial velocities, ground and effect
+parameters) and the scene declaration, and simulates from that first frame through the observed
+window and on past it. Requests can change the initial velocities or any object's parameters
+(swapped materials) before the rollout.
+
+What it is for: ``Twin.predict(seconds)`` -> ``Prediction`` (per-frame particle positions and
+centroid paths, with times). What it is not for: fitting, or ROS messages (``nodes``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.problem import effects_of, ground_of
+from mosiv_ros.io.recording import PointCloud
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.lifting.simulation import to_sim_particles
+from mosiv_ros.sim import ObjectModel, SimConfig, Simulator, domain_around
+
+_LOG = logging.getLogger(__name__)
+
+PREDICTION_MARGIN = 0.25
+"""Metres of free space around the objects' first positions that a prediction may move into
+(the grid grows with it: an empty grid node still costs each substep)."""
+
+
+@dataclass
+class Prediction:
+    """Predicted particle positions (F, N, 3) at ``times`` (F,) seconds after ``start_ns``."""
+
+    start_ns: int
+    times: np.ndarray
+    positions: np.ndarray
+    object_index: np.ndarray
+    object_ids: list[int]
+    names: list[str]
+
+    def centroids(self) -> np.ndarray:
+        """(F, K, 3) centroid of each object per predicted frame."""
+        return np.stack([self.positions[:, self.object_index == k].mean(axis=1)
+                         for k in range(len(self.object_ids))], axis=1)
+
+    def after(self, seconds: float, frame_rate: float | None = None) -> Prediction:
+        """The frames at or after ``seconds`` (e.g. past the observed window).
+
+        With ``frame_rate``, thinned to about that many frames per second.
+        """
+        keep = np.flatnonzero(self.times >= seconds - 1e-9)
+        if frame_rate and len(self.times) > 1:
+            step = max(1, int(round(1.0 / (frame_rate * (self.times[1] - self.times[0])))))
+            keep = keep[::step]
+        return Prediction(self.start_ns, self.times[keep], self.positions[keep],
+                          self.object_index, self.object_ids, self.names)
+
+    def stamps_ns(self) -> list[int]:
+        """Absolute stamp of every frame."""
+        return [self.start_ns + int(round(t * 1e9)) for t in self.times]
+
+    def to_cloud(self, stamp_ns: int) -> PointCloud:
+        """Every frame in one cloud with a field ``t``: seconds after ``stamp_ns``."""
+        n_frames, n = self.positions.shape[:2]
+        t = (self.start_ns + np.repeat(self.times, n) * 1e9 - stamp_ns) * 1e-9
+        ids = np.asarray(self.object_ids, dtype=np.uint16)[np.tile(self.object_index, n_frames)]
+        return PointCloud(self.positions.reshape(-1, 3), ids, {"t": t.astype(np.float32)},
+                          stamp_ns=stamp_ns)
+
+
+class Twin:
+    """The identified scene, ready to roll forward (see the module docstring)."""
+
+    def __init__(self, lifted: LiftedParticles, estimates: Estimates, scene: Scene,
+                 device: str = "auto", margin: float = PREDICTION_MARGIN) -> None:
+        self.lifted, self.estimates = lifted, estimates
+        particles, ids = to_sim_particles(lifted)
+        by_id = {o.id: o for o in estimates.objects}
+        missing = [i for i in ids if i not in by_id]
+        if missing:
+            raise ValueError(f"no estimate for object id(s) {missing} (estimated: {sorted(by_id)})")
+        self.ids = ids
+        self.objects = [ObjectModel(by_id[i].name, by_id[i].family, dict(by_id[i].params), id=i)
+                        for i in ids]
+        ground = ground_of(scene)
+        spacing = lifted.lattice_volume ** (1 / 3)
+        dx = 2.0 * spacing
+        lo, hi = domain_around(particles.x, dx, margin, floor=ground.height if ground else None)
+        frame_dt = estimates.frame_dt or 1 / 30
+        self.config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=frame_dt, ground=ground,
+                                effects=effects_of(scene, self.objects), device=device)
+        self.sim = Simulator(self.objects, particles, self.config)
+        self.sim.params.update({k: v for k, v in estimates.scene.items() if k in self.sim.params})
+        self.particles = particles
+        self.velocity = np.array([by_id[i].velocity for i in ids], dtype=np.float64)
+
+    @property
+    def window_seconds(self) -> float:
+        """Length of the observed window the estimates were fitted on."""
+        return max(self.estimates.frames - 1, 0) * self.estimates.frame_dt
+
+    def future(self, horizon: float, frame_rate: float, progress=None) -> Prediction:
+        """The predicted frames from the end of the observed window to ``horizon`` s past it."""
+        whole = self.predict(self.window_seconds + horizon, progress=progress)
+        return whole.after(self.window_seconds, frame_rate)
+
+    def predict(self, seconds: float, velocity: np.ndarray | None = None,
+                params: Mapping[str, Mapping[str, float]] | None = None,
+                progress=None) -> Prediction:
+        """Roll out ``seconds`` from the first observed frame.
+
+        ``velocity`` (K, 6) replaces the identified initial velocities (new initial conditions);
+        ``params`` {object name: {parameter: value}} replaces identified parameters (swapped
+        materials).
+        """
+        velocity = self.velocity if velocity is None else np.asarray(velocity, dtype=np.float64)
+        changed = {key for values in (params or {}).values() for key in values}
+        identified = {key: self.sim.params.get(key) for key in changed}
+        try:
+            for name, values in (params or {}).items():
+                for key, value in values.items():
+                    self.sim.params.set(key, {name: value})
+            return self._rollout(seconds, velocity, progress)
+        finally:  # a request changes this prediction only
+            for key, value in identified.items():
+                self.sim.params.set(key, value)
+
+    def _rollout(self, seconds: float, velocity: np.ndarray, progress) -> Prediction:
+        index = self.particles.object_index
+        centre = np.stack([self.particles.x[index == k].mean(axis=0) for k in range(len(self.ids))])
+        v = velocity[index, :3] + np.cross(velocity[index, 3:], self.particles.x - centre[index])
+        self.sim.set_initial_velocity(v)
+        n_frames = max(1, math.ceil(seconds / self.config.frame_dt - 1e-9))
+        positions = self.sim.rollout(n_frames, progress=progress)[:, 0]
+        return Prediction(self.estimates.stamp_ns, np.arange(n_frames + 1) * self.config.frame_dt,
+                          positions.astype(np.float64), index, list(self.ids),
+                          [o.name for o in self.objects])

@@ -1,0 +1,139 @@
+"""The report of a run: ``report.json``, ``report.md`` and plots, written into the output folder.
+
+What it is for: turning the dictionary ``pipeline.run`` assembles (estimates, metrics, timing,
+parameter errors against ground truth) into files a person reads: the estimates with their
+standard deviations and status, the scores on the fitted and the held-out frames, and two plots
+per object (observed vs predicted centroid path; Chamfer distance over time).
+What it is not for: computing anything (``evaluate``, ``identify``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_ros.predict.twin import Prediction
+from mosiv_ros.recon.reconstruct import ObservedFrame
+
+
+def jsonable(value):
+    """``value`` with numpy types made plain and non-finite floats made None (JSON null)."""
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_report(out: Path, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
+                 fitted: int) -> list[Path]:
+    """Write report.json, report.md and the plots; return their paths."""
+    paths = [out / "report.json", out / "report.md"]
+    paths[0].write_text(json.dumps(jsonable(report), indent=1))
+    plots = _plots(out, report, prediction, frames, fitted)
+    paths[1].write_text(_markdown(report, [p.name for p in plots]))
+    return paths + plots
+
+
+def _markdown(report: dict, plots: list[str]) -> str:
+    est = report["estimates"]
+    lines = [f"# mosiv run: {report['bag']}", "",
+             f"{report['frames']} frames at {1 / report['frame_dt']:.1f} fps, the first "
+             f"{report['fitted_frames']} fitted, the rest held out; {report['particles']} particles.",
+             "", "## Estimates", "",
+             "| object | family | parameter | estimate | std | truth | error | status |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    errors = report.get("parameter_errors", {})
+    for obj in est["objects"]:
+        for name, value in obj["params"].items():
+            std = obj["std"].get(name)
+            err = errors.get(obj["name"], {}).get(name, {})
+            measure = next((f"{k} {v:+.3g}" for k, v in err.items()
+                            if k in ("log10_ratio", "abs", "rel") and v is not None), "")
+            std_text = "" if std is None else f"{std:.3g}"
+            truth_text = f"{err['truth']:.4g}" if err else ""
+            lines.append(f"| {obj['name']} | {obj['family']} | {name} | {value:.4g} | "
+                         f"{std_text} | {truth_text} | {measure} | {obj['level']} {obj['message']} |")
+    for name, value in est["scene"].items():
+        std = est["scene_std"].get(name)
+        std_text = "" if std is None else f"{std:.3g}"
+        lines.append(f"| scene | | {name} | {value:.4g} | {std_text} | | | "
+                     f"{est['scene_level']} {est['scene_message']} |")
+    lines += ["", "## Scores", "",
+              "| frames | CD (mm) | EMD (mm) | CD vs truth (mm) | IoU | PSNR (dB) | SSIM |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for part in ("observed", "future"):
+        m = report["metrics"].get(part)
+        if not m:
+            continue
+        cells = [_cell(m, "cd", 1e3), _cell(m, "emd", 1e3), _cell(m, "cd_truth", 1e3),
+                 _cell(m, "iou"), _cell(m, "psnr"), _cell(m, "ssim")]
+        lines.append(f"| {part} ({m['frames']}) | " + " | ".join(cells) + " |")
+    if report.get("truth_effects"):
+        lines += ["", "Ground-truth effects: " + ", ".join(
+            f"{e.get('type')} ({'declared' if e.get('declared') else 'undeclared'})"
+            for e in report["truth_effects"])]
+    timing = report["timing"]
+    lines += ["", "## Time", "", ", ".join(f"{k[:-2]} {v:.1f} s" for k, v in timing.items())]
+    fit = report.get("fit") or {}
+    if fit:
+        lines += ["", f"Fit: {fit['iterations']} iterations, final loss {fit['loss']:.3g} m^2, "
+                      f"{fit['failures']} diverged iterations undone."]
+    lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _cell(metrics: dict, key: str, scale: float = 1.0) -> str:
+    value = metrics.get(key)
+    return "" if value is None else f"{value * scale:.3g}"
+
+
+def _plots(out: Path, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
+           fitted: int) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    paths = []
+    t_obs = np.array([(f.stamp_ns - frames[0].stamp_ns) * 1e-9 for f in frames])
+    window_end = t_obs[fitted - 1] if fitted else 0.0
+    centroids = prediction.centroids()
+    for k, (object_id, name) in enumerate(zip(prediction.object_ids, prediction.names, strict=True)):
+        observed = np.array([f.objects[object_id].occupancy.mean(axis=0)
+                             if object_id in f.objects and len(f.objects[object_id].occupancy)
+                             else [np.nan] * 3 for f in frames])
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+        for axis, colour in zip(range(3), ("tab:red", "tab:green", "tab:blue"), strict=True):
+            label = "xyz"[axis]
+            axes[0].plot(prediction.times, centroids[:, k, axis], color=colour, label=f"{label} twin")
+            axes[0].plot(t_obs, observed[:, axis], ".", color=colour, label=f"{label} observed")
+        axes[0].axvline(window_end, color="grey", ls="--", lw=1)
+        axes[0].set(xlabel="t (s)", ylabel="centroid (m)", title=f"{name}: path")
+        axes[0].legend(fontsize=7, ncol=2)
+        per_frame = report["per_frame"]
+        t = [p["t"] for p in per_frame]
+        cd = [p["cd"].get(object_id, np.nan) * 1e3 for p in per_frame]
+        axes[1].plot(t, cd, label="CD vs reconstruction")
+        truth = [p["cd_truth"].get(object_id, np.nan) * 1e3 for p in per_frame]
+        if np.any(np.isfinite(truth)):
+            axes[1].plot(t, truth, label="CD vs ground truth")
+        axes[1].axvline(window_end, color="grey", ls="--", lw=1)
+        axes[1].set(xlabel="t (s)", ylabel="mm", title=f"{name}: residual (dashed: end of fit)")
+        axes[1].legend(fontsize=7)
+        fig.tight_layout()
+        path = out / f"{name}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        paths.append(path)
+    return paths
