@@ -92,6 +92,7 @@ class IdentifyConfig:
     learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.")
     velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.")
     windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.")
+    search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.")
     search_rounds: int = _param(3, "Rounds of the batched coordinate search before Adam; 0 = none.")
     search_points: int = _param(5, "Values tried per parameter in a search round.")
     search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")

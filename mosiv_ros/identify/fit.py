@@ -8,11 +8,13 @@ velocity) to its observations with Adam on the simulator's gradients:
   for nu and friction), velocities in m/s and rad/s;
 - initial velocities start from the observed centroid motion of the first frames (an object
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
-- before Adam, a gradient-free coordinate search: ``search_rounds`` passes over the free
-  parameters, each set in turn to the best of ``search_points`` values around its current
-  coordinate (half-width ``search_decades`` decades for scale parameters, 2 logit units
-  otherwise, shrinking 3x per round), all values simulated in one batched rollout of the first
-  ``search_frames`` frames (0 = all);
+- before Adam, a gradient-free search, all its candidates simulated in batched rollouts of
+  the first ``search_frames`` frames (0 = all): ``search_samples`` points of a Latin hypercube
+  around the initial coordinates (half-width ``search_decades`` decades for scale parameters,
+  2 logit units otherwise; coupled parameters can make a greedy search settle in a wrong basin),
+  the best of them then refined by ``search_rounds`` coordinate passes, each parameter set in
+  turn to the best of ``search_points`` values (full width for two rounds, then 3x narrower
+  each round);
 - horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
   windows of h frames, up to ``windows`` of them spread over the sequence and taken in turn;
   the last stage (0) fits the whole sequence from frame 0;
@@ -69,6 +71,7 @@ class FitSettings:
     windows: int = 3
     checkpoint_dir: str = ""
     splat_radius: float = 0.005
+    search_samples: int = 32
     search_points: int = 5
     search_rounds: int = 3
     search_decades: float = 1.0
@@ -281,15 +284,30 @@ class Identifier:
                                   for f in range(1, frames + 1)]) for b in range(n)])
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:
-        """Coordinate search over every free entry (see the module docstring); return u."""
+        """Global sampling, then coordinate search (see the module docstring); return u."""
         s = self.settings
         u = self._pack()
-        if s.search_points < 2 or s.search_rounds < 1:
+        half = np.array([s.search_decades * np.log(10.0) if e.coordinate.kind == "log" else 2.0
+                         for e in self.entries])
+        if s.search_samples > 0:
+            rng = np.random.default_rng(0)
+            # Latin hypercube over u +- half: every coordinate's range cut into as many strata
+            # as samples, one sample per stratum, strata paired at random across coordinates
+            strata = np.stack([rng.permutation(s.search_samples) for _ in u], axis=1)
+            unit = (strata + rng.random(strata.shape)) / s.search_samples
+            candidates = np.vstack([u[None], u + half * (2 * unit - 1)])
+            losses = self.batch_losses(candidates, velocity, s.search_frames)
+            if not np.all(np.isnan(losses)):
+                u = candidates[int(np.nanargmin(losses))].copy()
+                _LOG.info("search: best of %d samples, loss %.3g (start %.3g): %s",
+                          s.search_samples, np.nanmin(losses), losses[0], self._values_of(u))
+        if s.search_points < 2:
+            self._apply(u, velocity)
             return u
         for round_ in range(s.search_rounds):
+            shrink = 3.0 ** max(0, round_ - 1)  # two rounds at full width, then narrower
             for i, entry in enumerate(self.entries):
-                half = (s.search_decades * np.log(10.0) if entry.coordinate.kind == "log" else 2.0)
-                grid = u[i] + half / 3**round_ * np.linspace(-1.0, 1.0, s.search_points)
+                grid = u[i] + half[i] / shrink * np.linspace(-1.0, 1.0, s.search_points)
                 candidates = np.repeat(u[None], s.search_points, axis=0)
                 candidates[:, i] = grid
                 losses = self.batch_losses(candidates, velocity, s.search_frames)

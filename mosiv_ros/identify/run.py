@@ -48,7 +48,8 @@ def fit_settings(config: IdentifyConfig) -> FitSettings:
         learning_rate=config.learning_rate, velocity_learning_rate=config.velocity_learning_rate,
         chamfer_weight=config.chamfer_weight, silhouette_weight=config.silhouette_weight,
         per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
-        windows=config.windows, search_points=config.search_points,
+        windows=config.windows, search_samples=config.search_samples,
+        search_points=config.search_points,
         search_rounds=config.search_rounds, search_frames=config.search_frames)
 
 
