@@ -111,14 +111,18 @@ def domain_around(points: np.ndarray, dx: float, margin: float = 0.1,
                   floor: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A box around ``points`` with ``margin`` metres on every side plus the wall cells.
 
-    With ``floor`` (a ground height), the box reaches below it by the wall cells too.
+    With ``floor`` (a ground height), the box reaches below it by the wall cells too. The box
+    snaps outwards to multiples of ``dx``, so that every domain of one ``dx`` puts its grid nodes
+    at the same world positions: MPM is not translation invariant at the scale of a cell, and two
+    simulations of one scene on grids offset by part of a cell (the synthetic recorder's and the
+    identifier's) drifted 2 cm apart in a second of contact.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pad = margin + (WALL_CELLS + 1) * dx
     lo, hi = points.min(axis=0) - pad, points.max(axis=0) + pad
     if floor is not None:
         lo[2] = min(lo[2], floor - (WALL_CELLS + 1) * dx)
-    return lo, hi
+    return np.floor(lo / dx - 1e-9) * dx, np.ceil(hi / dx + 1e-9) * dx
 
 
 @dataclass

@@ -38,7 +38,7 @@ from mosiv_ros.sim import (
     Simulator,
     domain_around,
 )
-from mosiv_ros.sim.boundaries import GROUND_PARAMS
+from mosiv_ros.sim.boundaries import GROUND_PARAMS, WALL_CELLS
 from mosiv_ros.synth.bodies import gripper_points
 from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration, simulator_effects
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
@@ -96,34 +96,44 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     return path
 
 
+WALL_RETRIES = 3
+"""Times the recorder widens a domain whose walls the objects reached, before giving up."""
+
+
 def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-    """Particle positions (n_frames + 1, N, 3) float32 at the frame times, and the sim settings."""
+    """Particle positions (n_frames + 1, N, 3) float32 at the frame times, and the sim settings.
+
+    The domain's walls are not part of the scene: when objects come within the wall cells of
+    the grid (where the walls would stop them), the domain is widened to cover everywhere they
+    went, plus the margin, and the scene simulated again; after ``WALL_RETRIES`` widenings it is
+    an error.
+    """
     spec, sim = layout.spec, layout.spec.simulation
     points = layout.x
     if spec.gripper is not None:
         reach = max(spec.gripper.size) * 2
         points = np.concatenate([points, spec.gripper.positions - reach, spec.gripper.positions + reach])
+    margin = sim.margin
+    for attempt in range(WALL_RETRIES + 1):
+        simulator, config, substeps, dt = _simulator(layout, points, margin)
+        _LOG.info("simulating %d frames x %d substeps (dt %.3g s) of %d particles on %s",
+                  n_frames, substeps, dt, len(layout.x), simulator.device)
+        report = None if progress is None else (lambda frame: progress("simulate", frame, n_frames))
+        trajectory = simulator.rollout(n_frames, progress=report)
+        inner = (WALL_CELLS + 1) * sim.dx
+        x = trajectory[:, 0]
+        if np.all(x.min(axis=(0, 1)) >= simulator.lo + inner) and np.all(x.max(axis=(0, 1)) <= simulator.hi - inner):
+            break
+        if attempt == WALL_RETRIES:
+            raise ValueError("simulation: the objects keep reaching the walls of the domain after "
+                             f"{WALL_RETRIES} widenings; raise simulation.margin")
+        # cover where the objects went, and a margin more on every side
+        points = np.concatenate([points, x.reshape(-1, 3)])
+        _LOG.info("objects reached the domain walls; widening the domain to where they went and "
+                  "simulating again")
     ground = layout.ground
-    normal = np.asarray(ground.normal) / np.linalg.norm(ground.normal)
-    lo, hi = domain_around(points, sim.dx, sim.margin)
-    # The floor must lie inside the grid: its lowest point over the domain's horizontal extent.
-    corners = np.array([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
-    floor = float(np.min((ground.height - corners @ normal[:2]) / normal[2]))
-    lo, hi = domain_around(points, sim.dx, sim.margin, floor=floor)
-    config = SimConfig(dx=sim.dx, lo=lo, hi=hi, frame_dt=1.0 / spec.cameras.fps, cfl=sim.cfl,
-                       max_speed=sim.max_speed, ground=ground,
-                       colliders=[layout.collider] if layout.collider else [],
-                       effects=simulator_effects(spec.effects), device=sim.device)
-    objects = [ObjectModel(o.name, o.family, dict(o.params), o.id) for o in spec.objects]
-    particles = Particles(x=layout.x, volume=layout.volume, object_index=layout.object_index, v=layout.v)
-    simulator = Simulator(objects, particles, config)
-    substeps, dt = simulator.time_step()
-    _LOG.info("simulating %d frames x %d substeps (dt %.3g s) of %d particles on %s",
-              n_frames, substeps, dt, len(layout.x), simulator.device)
-    report = None if progress is None else (lambda frame: progress("simulate", frame, n_frames))
-    trajectory = simulator.rollout(n_frames, progress=report)
     settings = {
-        "dx": sim.dx, "particle_spacing": sim.particle_spacing, "margin": sim.margin, "cfl": sim.cfl,
+        "dx": sim.dx, "particle_spacing": sim.particle_spacing, "margin": margin, "cfl": sim.cfl,
         "max_speed": sim.max_speed, "device": simulator.device, "frame_dt": config.frame_dt,
         "substeps_per_frame": substeps, "substep_dt": dt, "domain_lo": simulator.lo,
         "domain_hi": simulator.hi, "simulated_frames": n_frames,
@@ -132,6 +142,27 @@ def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) ->
         "ground": {"height": ground.height, "normal": list(ground.normal), "friction": ground.friction},
     }
     return trajectory[:, 0], settings
+
+
+def _simulator(layout: Layout, points: np.ndarray, margin: float):
+    """The scene's simulator on a domain ``margin`` metres around ``points`` and the floor."""
+    spec, sim = layout.spec, layout.spec.simulation
+    ground = layout.ground
+    normal = np.asarray(ground.normal) / np.linalg.norm(ground.normal)
+    lo, hi = domain_around(points, sim.dx, margin)
+    # The floor must lie inside the grid: its lowest point over the domain's horizontal extent.
+    corners = np.array([[x, y] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+    floor = float(np.min((ground.height - corners @ normal[:2]) / normal[2]))
+    lo, hi = domain_around(points, sim.dx, margin, floor=floor)
+    config = SimConfig(dx=sim.dx, lo=lo, hi=hi, frame_dt=1.0 / spec.cameras.fps, cfl=sim.cfl,
+                       max_speed=sim.max_speed, ground=ground,
+                       colliders=[layout.collider] if layout.collider else [],
+                       effects=simulator_effects(spec.effects), device=sim.device)
+    objects = [ObjectModel(o.name, o.family, dict(o.params), o.id) for o in spec.objects]
+    particles = Particles(x=layout.x, volume=layout.volume, object_index=layout.object_index, v=layout.v)
+    simulator = Simulator(objects, particles, config)
+    substeps, dt = simulator.time_step()
+    return simulator, config, substeps, dt
 
 
 def _effect_values(simulator: Simulator, effect: str, names: list[str]) -> dict[str, Any]:
