@@ -108,10 +108,11 @@ def test_undeclared_drag_appears_nowhere_in_the_bag_yet_moves_the_objects(synth_
             assert b"drag" not in path.read_bytes().lower(), path.name
     for message in iter_raw_messages(synth_pair_bag):
         assert b"drag" not in message.data.lower(), message.topic
-    # present in the data: the same scene without drag moves differently
-    with_drag = read_ground_truth_particles(synth_pair_bag).of_object(2)[-1].mean(axis=0)
-    no_drag = read_ground_truth_particles(without_drag).of_object(2)[-1].mean(axis=0)
-    assert np.linalg.norm(with_drag - no_drag) > 1e-3
+    # present in the data: the same scene without drag moves differently (in flight: the ball
+    # ends at rest on the slab either way)
+    with_drag = read_ground_truth_particles(synth_pair_bag).of_object(2).mean(axis=1)
+    no_drag = read_ground_truth_particles(without_drag).of_object(2).mean(axis=1)
+    assert np.linalg.norm(with_drag - no_drag, axis=1).max() > 1e-3
 
 
 def test_a_declared_effect_is_declared_under_its_type_and_floor_effects_under_the_ground():

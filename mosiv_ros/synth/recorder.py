@@ -105,8 +105,8 @@ def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) ->
 
     The domain's walls are not part of the scene: when objects come within the wall cells of
     the grid (where the walls would stop them), the domain is widened to cover everywhere they
-    went, plus the margin, and the scene simulated again; after ``WALL_RETRIES`` widenings it is
-    an error.
+    went, plus twice the last margin, and the scene simulated again; after ``WALL_RETRIES``
+    widenings it is an error.
     """
     spec, sim = layout.spec, layout.spec.simulation
     points = layout.x
@@ -127,8 +127,10 @@ def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) ->
         if attempt == WALL_RETRIES:
             raise ValueError("simulation: the objects keep reaching the walls of the domain after "
                              f"{WALL_RETRIES} widenings; raise simulation.margin")
-        # cover where the objects went, and a margin more on every side
+        # cover where the objects went, and a margin (doubling: spreading material goes on
+        # spreading) more on every side
         points = np.concatenate([points, x.reshape(-1, 3)])
+        margin *= 2
         _LOG.info("objects reached the domain walls; widening the domain to where they went and "
                   "simulating again")
     ground = layout.ground
