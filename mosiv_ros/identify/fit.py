@@ -148,6 +148,7 @@ class Identifier:
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
         self._batches: dict[int, Simulator] = {}
+        self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
     # --- parameters <-> optimisation vector --------------------------------------------------
 
@@ -193,13 +194,15 @@ class Identifier:
         total, per = 0.0, np.zeros(obs.n_objects)
         for f in range(1, length + 1):
             x = traj[f, 0].astype(np.float64)
-            value, g, per_f = geometry_loss(x, self.index, obs.points[start + f], s.per_object_loss)
+            value, g, per_f = geometry_loss(x, self.index, obs.points[start + f], s.per_object_loss,
+                                            obs.trees(start + f))
             total += s.chamfer_weight * value
             dL[f, 0] = s.chamfer_weight * g
             per += np.nan_to_num(per_f)
             if s.silhouette_weight > 0 and obs.masks:
                 value, g = silhouette_loss(x, self.index, obs.object_ids, obs.views,
-                                           obs.masks[start + f], s.splat_radius, s.per_object_loss)
+                                           obs.masks[start + f], s.splat_radius, s.per_object_loss,
+                                           self.torch_device)
                 total += s.silhouette_weight * value
                 dL[f, 0] += s.silhouette_weight * g
         total, dL, per = total / length, dL / length, per / length
@@ -280,7 +283,7 @@ class Identifier:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan)
         return np.array([np.mean([geometry_loss(traj[f, b].astype(np.float64), self.index,
-                                                obs.points[f], s.per_object_loss)[0]
+                                                obs.points[f], s.per_object_loss, obs.trees(f))[0]
                                   for f in range(1, frames + 1)]) for b in range(n)])
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:

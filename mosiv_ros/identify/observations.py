@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 MOTION_GAIN = 4.0
 """How much better (residual ratio) a moving fit must be than rest to be believed."""
@@ -56,6 +57,13 @@ class Observations:
     views: list[View] = field(default_factory=list)
     masks: list[dict[str, np.ndarray]] = field(default_factory=list)
     start_ns: int = 0
+    _trees: dict[int, list] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def trees(self, frame: int) -> list[cKDTree | None]:
+        """KD-trees of each object's points at ``frame`` (built once, None where empty)."""
+        if frame not in self._trees:
+            self._trees[frame] = [cKDTree(p) if len(p) else None for p in self.points[frame]]
+        return self._trees[frame]
 
     def __post_init__(self) -> None:
         if self.frame_dt <= 0:
