@@ -21,6 +21,8 @@ MOTION_GAIN = 4.0
 """How much better (residual ratio) a moving fit must be than rest to be believed."""
 NOISE_FLOOR = 0.001
 """Centroid noise (m) of a reconstruction that a motion must explain beyond."""
+MOTION_FLOOR = 0.005
+"""Least centroid displacement (m) from the second to the last of the frames used, for motion."""
 
 
 @dataclass
@@ -99,9 +101,10 @@ class Observations:
         and uniformly accelerated (x = x0 + v0 t + a t^2 / 2, a free: gravity in flight,
         friction when sliding; a constant-velocity fit would return the mean velocity of a
         decelerating object). Rest is kept unless the motion fits more than ``MOTION_GAIN``
-        times better (plus a millimetre of reconstruction noise per frame): a resting object's
-        hull jitters as others move past it, and a difference of frames would read that as a
-        velocity.
+        times better (plus a millimetre of reconstruction noise per frame) and the centroid still
+        moves ``MOTION_FLOOR`` after the first frame: a resting object's hull jitters as others
+        move past it (or jumps once where it was occluded), and a difference of frames would
+        read that as a velocity.
         """
         c = self.centroids()[:frames]
         t = np.arange(len(c)) * self.frame_dt
@@ -116,7 +119,10 @@ class Observations:
             A = np.stack(columns, axis=1)
             coef = np.linalg.lstsq(A, ck, rcond=None)[0]
             moving = float(np.sum((A @ coef - ck) ** 2))
-            if moving < rest / MOTION_GAIN - len(tk) * NOISE_FLOOR**2:
+            # the motion must go on after the first frame, whose hull alone may be off (an
+            # object occluded in it jumps once and stays)
+            goes_on = len(tk) < 4 or np.linalg.norm(ck[-1] - ck[1]) > MOTION_FLOOR
+            if goes_on and moving < rest / MOTION_GAIN - len(tk) * NOISE_FLOOR**2:
                 v0[k] = coef[1]
         return v0
 
