@@ -213,7 +213,7 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
         sigma_u = float(std_u[j]) if std_u is not None else float("nan")
         sigma = sigma_u * float(entry.coordinate.dtheta_du(result.u[j]))
         poor = _poorly_identified(entry.coordinate, sigma_u, sigma)
-        if identifier.sim.params.spec(entry.name).per_object:
+        if entry.per_object:
             per_object[problem.objects[entry.index[1]].name][entry.name] = (theta, sigma, poor)
         else:
             scene[entry.label] = theta

@@ -94,16 +94,53 @@ class FitProblem:
     sim_config: SimConfig
     free: list[str]
     fixed: dict[str, set[str]] = field(default_factory=dict)
+    boundary: Boundary | None = None
+
+
+@dataclass
+class Boundary:
+    """M-PhyGs boundary particles (Sec. A, Eq. 1): V_i = V_g (sigmoid(-beta (d_i + o_k)) + eps).
+
+    ``sdf`` (N,) signed distance of each particle to the estimated surface (m, negative inside),
+    ``lattice_volume`` V_g, ``band`` the half-width of the band (the offsets' range +-band).
+    A per-object offset o_k is fitted with the other parameters; particles outside the moved
+    boundary (V_i < V_g / 2) carry almost no mass and take no part in the geometry loss.
+    """
+
+    sdf: np.ndarray
+    lattice_volume: float
+    beta: float
+    eps: float
+    band: float
+
+    def volumes(self, offsets_per_particle: np.ndarray) -> np.ndarray:
+        z = -self.beta * (self.sdf + offsets_per_particle)
+        return self.lattice_volume * (0.5 * (1.0 + np.tanh(0.5 * z)) + self.eps)
+
+    def dvolume_doffset(self, offsets_per_particle: np.ndarray) -> np.ndarray:
+        sig = 0.5 * (1.0 + np.tanh(-0.5 * self.beta * (self.sdf + offsets_per_particle)))
+        return -self.beta * self.lattice_volume * sig * (1.0 - sig)
+
+    def inside(self, offsets_per_particle: np.ndarray) -> np.ndarray:
+        return self.sdf + offsets_per_particle <= 0.0
+
+
+OFFSET = "boundary_offset"
+"""The entry name of a boundary offset (not a simulator parameter)."""
 
 
 @dataclass
 class Entry:
-    """One free scalar: parameter ``name`` at ``index`` in its (batch, ...) array."""
+    """One free scalar: parameter ``name`` at ``index`` in its (batch, ...) array.
+
+    A boundary offset has ``name`` ``OFFSET`` and index (0, object index).
+    """
 
     name: str
     index: tuple[int, ...]
     coordinate: Coordinate
     label: str
+    per_object: bool = False
 
 
 @dataclass
@@ -142,6 +179,8 @@ class Identifier:
             raise ValueError(f"observation frame_dt {obs.frame_dt} differs from the simulator's "
                              f"{problem.sim_config.frame_dt}")
         self.sim = Simulator(problem.objects, problem.particles, problem.sim_config)
+        self.offsets = np.zeros(len(problem.objects))
+        self.inside = np.ones(len(problem.particles.x), dtype=bool)
         self.entries = self._entries(problem.free)
         self.index = problem.particles.object_index
         self.centre0 = np.stack([problem.particles.x[self.index == k].mean(axis=0)
@@ -161,24 +200,37 @@ class Identifier:
             if spec.per_object:
                 for k, obj in enumerate(self.problem.objects):
                     if name in FAMILY_PARAMS[obj.family] and name not in self.problem.fixed.get(obj.name, ()):
-                        entries.append(Entry(name, (0, k), coordinate, f"{obj.name}.{name}"))
+                        entries.append(Entry(name, (0, k), coordinate, f"{obj.name}.{name}", True))
             elif spec.size > 1:
                 entries += [Entry(name, (0, c), coordinate, f"{name}[{c}]") for c in range(spec.size)]
             else:
                 entries.append(Entry(name, (0,), coordinate, name))
+        boundary = self.problem.boundary
+        if boundary is not None and boundary.band > 0:
+            coordinate = Coordinate("logit", -boundary.band, boundary.band)
+            entries += [Entry(OFFSET, (0, k), coordinate, f"{obj.name}.{OFFSET}", True)
+                        for k, obj in enumerate(self.problem.objects)]
         if not entries:
             raise ValueError(f"nothing to fit: none of {free} applies to these objects")
         return entries
 
     def _pack(self) -> np.ndarray:
-        u = [e.coordinate.to_u(self.sim.params.get(e.name)[e.index]) for e in self.entries]
+        u = [e.coordinate.to_u(self.offsets[e.index[1]] if e.name == OFFSET
+                               else self.sim.params.get(e.name)[e.index]) for e in self.entries]
         return np.asarray(u, dtype=np.float64)
 
     def _apply(self, u: np.ndarray, velocity: np.ndarray) -> None:
         for entry, value in zip(self.entries, u, strict=True):
+            if entry.name == OFFSET:
+                self.offsets[entry.index[1]] = entry.coordinate.to_theta(value)
+                continue
             current = self.sim.params.get(entry.name)
             current[entry.index] = entry.coordinate.to_theta(value)
             self.sim.params.set(entry.name, current)
+        boundary = self.problem.boundary
+        if boundary is not None:
+            self.sim.set_volume(boundary.volumes(self.offsets[self.index]))
+            self.inside = boundary.inside(self.offsets[self.index])
         linear, angular = velocity[self.index, :3], velocity[self.index, 3:]
         self.sim.set_initial_velocity(linear + np.cross(angular, self.problem.particles.x
                                                         - self.centre0[self.index]))
@@ -192,12 +244,13 @@ class Identifier:
         traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
         dL = np.zeros(traj.shape, dtype=np.float64)
         total, per = 0.0, np.zeros(obs.n_objects)
+        inside = self.inside
         for f in range(1, length + 1):
             x = traj[f, 0].astype(np.float64)
-            value, g, per_f = geometry_loss(x, self.index, obs.points[start + f], s.per_object_loss,
-                                            obs.trees(start + f))
+            value, g, per_f = geometry_loss(x[inside], self.index[inside], obs.points[start + f],
+                                            s.per_object_loss, obs.trees(start + f))
             total += s.chamfer_weight * value
-            dL[f, 0] = s.chamfer_weight * g
+            dL[f, 0, inside] = s.chamfer_weight * g
             per += np.nan_to_num(per_f)
             if s.silhouette_weight > 0 and obs.masks:
                 value, g = silhouette_loss(x, self.index, obs.object_ids, obs.views,
@@ -210,8 +263,12 @@ class Identifier:
             return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
         grads = self.sim.backward(dL)
         u = self._pack()
-        du = np.array([grads.params[e.name][e.index] * e.coordinate.dtheta_du(u[i])
-                       for i, e in enumerate(self.entries)])
+        boundary = self.problem.boundary
+        if boundary is not None:
+            dL_do = grads.volume[0] * boundary.dvolume_doffset(self.offsets[self.index])
+            offset_grads = np.bincount(self.index, dL_do, minlength=obs.n_objects)
+        du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET else grads.params[e.name][e.index])
+                       * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
         dv = np.zeros((obs.n_objects, 6))
         if initial is None:  # velocities are parameters only of windows from frame 0
             g0 = grads.v0[0]
@@ -271,19 +328,27 @@ class Identifier:
                                                  self.problem.sim_config, n_batch=n)
         self._apply(candidates[0], velocity)
         batch.set_initial_velocity(self.sim.v0.numpy()[: self.sim.n_particles])
+        offsets = np.repeat(self.offsets[None], n, axis=0)
         for name in dict.fromkeys(e.name for e in self.entries):
-            values = np.repeat(self.sim.params.get(name), n, axis=0)
+            values = offsets if name == OFFSET else np.repeat(self.sim.params.get(name), n, axis=0)
             for i, entry in enumerate(self.entries):
                 if entry.name == name:
                     values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
-            batch.params.set(name, values)
+            if name != OFFSET:
+                batch.params.set(name, values)
+        boundary = self.problem.boundary
+        inside = np.ones((n, len(self.index)), dtype=bool)
+        if boundary is not None:
+            batch.set_volume(np.stack([boundary.volumes(o[self.index]) for o in offsets]))
+            inside = np.stack([boundary.inside(o[self.index]) for o in offsets])
         try:
             traj = batch.rollout(frames)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan)
-        return np.array([np.mean([geometry_loss(traj[f, b].astype(np.float64), self.index,
-                                                obs.points[f], s.per_object_loss, obs.trees(f))[0]
+        return np.array([np.mean([geometry_loss(traj[f, b, inside[b]].astype(np.float64),
+                                                self.index[inside[b]], obs.points[f],
+                                                s.per_object_loss, obs.trees(f))[0]
                                   for f in range(1, frames + 1)]) for b in range(n)])
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:
@@ -380,7 +445,8 @@ class Identifier:
                                       iteration + 1, failures)
         self._apply(u, velocity)
         loss, _, _, per = self._window_loss(0, n, None, grad=False)
-        values = {name: self.sim.params.get(name)[0] for name in dict.fromkeys(e.name for e in self.entries)}
+        values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
+                  for name in dict.fromkeys(e.name for e in self.entries)}
         return FitResult(values, self.entries, u, velocity, loss, per, history, failures)
 
     def _values_of(self, u: np.ndarray) -> dict[str, float]:

@@ -11,6 +11,8 @@ calibration and the scene declaration into what ``identify.fit`` needs:
   observed (and the floor), the declared ground (friction 0.5 to start with unless declared),
   gravity (declared or (0, 0, -9.81)), the declared effects with their declared values, and the
   gripper as a kinematic collider along its recorded poses;
+- the M-PhyGs boundary of the lifted particles (their signed distances), whose per-object
+  offset is fitted when lifting sampled a band outside the surface;
 - the free parameters: for each object the parameters its family uses that the declaration does
   not give (density stays at its declared or default value: geometry alone cannot tell mass),
   each object's friction only when there are other objects to touch, and the ground friction
@@ -28,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from mosiv_ros.identify.fit import FitProblem
+from mosiv_ros.identify.fit import Boundary, FitProblem
 from mosiv_ros.identify.observations import Observations, View
 from mosiv_ros.io.recording import Recording
 from mosiv_ros.io.scene import Scene
@@ -132,7 +134,9 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
                        effects=effects_of(scene, objects),
                        colliders=_colliders(scene, gripper_poses, stamps[0]))
     fixed = {o.name: set(o.params) for o in objects}  # declared values stay as declared
-    problem = FitProblem(objects, particles, observations, config, free, fixed)
+    band = float(max(lifted.sdf.max(), 0.0))  # the boundary band lifting sampled outside
+    boundary = Boundary(lifted.sdf, lifted.lattice_volume, lifted.beta, lifted.eps, band)
+    problem = FitProblem(objects, particles, observations, config, free, fixed, boundary)
     _LOG.info("fit problem: %d objects (%s), %d particles, %d frames at %.1f fps, dx %.3f m, "
               "free: %s", len(objects), ", ".join(f"{o.name}: {o.family}" for o in objects),
               len(particles.x), len(frames), 1 / frame_dt, dx, ", ".join(free))

@@ -77,7 +77,9 @@ def occupancy_on_lattice(voxel_centres: np.ndarray, voxel_size: float, box: Box)
         grid |= coverage >= 0.5
         # a part thinner than half a cell (a plate, a rod) has no such cell: keep the cells it
         # touches where no neighbour is inside, so it is not eroded away
-        grid |= (coverage > 0) & ~ndimage.binary_dilation(grid)
+        # (no neighbour in any of the 26 directions: a rim cell touching the inside only
+        # diagonally would otherwise start an extra layer that the refinement completes)
+        grid |= (coverage > 0) & ~ndimage.binary_dilation(grid, structure=np.ones((3, 3, 3), bool))
     return grid
 
 

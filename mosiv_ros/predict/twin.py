@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.fit import OFFSET
 from mosiv_ros.identify.problem import effects_of, ground_of
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
@@ -81,13 +82,15 @@ class Twin:
     def __init__(self, lifted: LiftedParticles, estimates: Estimates, scene: Scene,
                  device: str = "auto", margin: float = PREDICTION_MARGIN) -> None:
         self.lifted, self.estimates = lifted, estimates
-        particles, ids = to_sim_particles(lifted)
         by_id = {o.id: o for o in estimates.objects}
+        offsets = {i: o.params[OFFSET] for i, o in by_id.items() if OFFSET in o.params}
+        particles, ids = to_sim_particles(lifted, offsets)
         missing = [i for i in ids if i not in by_id]
         if missing:
             raise ValueError(f"no estimate for object id(s) {missing} (estimated: {sorted(by_id)})")
         self.ids = ids
-        self.objects = [ObjectModel(by_id[i].name, by_id[i].family, dict(by_id[i].params), id=i)
+        self.objects = [ObjectModel(by_id[i].name, by_id[i].family,
+                                    {k: v for k, v in by_id[i].params.items() if k != OFFSET}, id=i)
                         for i in ids]
         ground = ground_of(scene)
         spacing = lifted.lattice_volume ** (1 / 3)

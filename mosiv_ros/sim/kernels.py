@@ -42,7 +42,7 @@ from mosiv_ros.sim.params import param
 MAX_COLLIDERS = 2
 MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
 WALL = wp.constant(WALL_CELLS)
-CONTACT_MASS_FRACTION = wp.constant(1.0e-5)
+CONTACT_MASS_FRACTION = wp.constant(1.0e-3)
 
 
 @wp.func
@@ -257,8 +257,9 @@ def contact_totals(
 ):
     """Sums over the fields present at each node (contact pass 2, one thread per field node).
 
-    A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass (the far
-    fringe of an object's kernel support takes no part in contact). Sums: mass, momentum after
+    A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far
+    fringe of an object's kernel support, and M-PhyGs boundary particles outside the surface
+    (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum after
     the effects (m v), friction-weighted mass (mu m), count, and the highest normal_rank.
     """
     i = wp.tid()
