@@ -5,6 +5,7 @@ Not for algorithms: a node hands each message to the ROS-free core and publishes
 
 from __future__ import annotations
 
+import signal
 import sys
 import typing
 from collections.abc import Callable, Sequence
@@ -13,7 +14,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import ParameterDescriptor
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -94,22 +95,36 @@ def main_for(
     if "-h" in user_args or "--help" in user_args:
         print_help(node_name, config_type, summary)
         return 0
+    # rclpy's own handler shuts the context down on Ctrl-C (spin then raises
+    # ExternalShutdownException) and also chains to Python's handler. Python's default raises
+    # KeyboardInterrupt at whatever line runs next, which may be the clean-up below; a no-op
+    # Python handler leaves the stop to rclpy alone, so the node always exits 0.
+    signal.signal(signal.SIGINT, lambda _signum, _frame: None)
     rclpy.init(args=argv)
     node = None
     try:
+        # The executor exists before "ready" is logged: a Ctrl-C right after that line must find
+        # everything in place (creating an executor on a context already shut down fails).
+        executor = SingleThreadedExecutor()
         node = factory()
+        executor.add_node(node)
         node.get_logger().info(f"{node_name} ready")
         done = getattr(node, "done", None)
         if done is None:
-            rclpy.spin(node)
+            executor.spin()
         else:
-            rclpy.spin_until_future_complete(node, done)
-    except (KeyboardInterrupt, ExternalShutdownException):
+            executor.spin_until_future_complete(done)
+    except ExternalShutdownException:
         pass
-    except (MosivIOError, ValueError) as error:
-        # Bad settings or input found while starting: one clear line, no traceback.
-        print(f"{node_name}: error: {error}", file=sys.stderr)
-        return 2
+    except Exception as error:
+        if not rclpy.ok():
+            pass  # stopped while starting: Ctrl-C shut the context down under the constructor
+        elif isinstance(error, (MosivIOError, ValueError)):
+            # Bad settings or input found while starting: one clear line, no traceback.
+            print(f"{node_name}: error: {error}", file=sys.stderr)
+            return 2
+        else:
+            raise
     finally:
         if node is not None:
             node.destroy_node()
