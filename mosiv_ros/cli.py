@@ -1,6 +1,7 @@
 """The ``mosiv`` command line: the pipeline's entry points without a ROS launch system.
 
     mosiv run BAG --out D    the whole pipeline in-process: estimates, twin and report in D
+    mosiv close-loop BAG --out D   find an effect the model lacks, add it, report before/after
     mosiv graph BAG          replay BAG through the five nodes; estimates and report in --out
     mosiv info BAG           read a recording and summarise cameras, frames and objects
     mosiv make-sample-bag D  write the bundled analytic sample recording to D
@@ -173,6 +174,42 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_close_loop(args: argparse.Namespace) -> int:
+    import time
+
+    from mosiv_ros.loop.closure import LoopConfig
+    from mosiv_ros.loop.report import close_loop
+    from mosiv_ros.pipeline import RunConfig
+    from mosiv_ros.sim.errors import SimulationError
+
+    configs = load_params_file(args.params_file)
+    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
+                       configs["identify_node"], configs["prediction_node"], holdout=args.holdout,
+                       render=not args.no_render)
+    if args.device:
+        config.identify.device = config.prediction.device = args.device
+    loop = LoopConfig(holdout=args.holdout, top_k=args.top_k, max_rounds=args.max_rounds)
+    start = time.perf_counter()
+    progress, close = _progress_bars()
+    try:
+        report = close_loop(args.bag, args.out, config, loop, progress=progress)
+    except SimulationError as error:
+        print(f"mosiv close-loop: {args.bag}: {error}", file=sys.stderr)
+        return 2
+    finally:
+        close()
+    print(f"verdict: {report['verdict']}")
+    for effect in report["accepted"]:
+        values = ", ".join(f"{k}={v:.4g}" for k, v in effect["values"].items())
+        print(f"accepted {effect['name']}: {values}")
+    for label in ("before", "after"):
+        errors = report[label]["centroid_error"]
+        print(f"{label}: centroid RMS {errors['fitted'] * 1e3:.2f} mm on fitted frames, "
+              f"{errors['held_out'] * 1e3:.2f} mm held out")
+    print(f"report: {Path(args.out) / 'close_loop.md'} ({time.perf_counter() - start:.0f} s)")
+    return 0
+
+
 def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
@@ -286,6 +323,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
     run.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
     run.set_defaults(func=cmd_run)
+
+    loop = sub.add_parser("close-loop", help="find the residual, trace it to a missing effect, "
+                                                 "add it, report the error before and after")
+    loop.add_argument("bag", help="rosbag2 directory")
+    loop.add_argument("--out", type=Path, required=True, help="output directory for the report")
+    loop.add_argument("--params-file", type=Path, default=None,
+                      help="ROS 2 params file (default: config/mosiv.yaml's values)")
+    loop.add_argument("--holdout", type=float, default=0.3,
+                      help="fraction of the frames held out: they decide whether an effect is accepted")
+    loop.add_argument("--top-k", type=int, default=2, help="leading candidates refitted per round")
+    loop.add_argument("--max-rounds", type=int, default=3, help="most effects added")
+    loop.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
+    loop.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
+    loop.set_defaults(func=cmd_close_loop)
 
     params = sub.add_parser("params", help="print every node's default parameters")
     params.set_defaults(func=cmd_params)

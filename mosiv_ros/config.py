@@ -104,6 +104,10 @@ class IdentifyConfig:
     output_yaml: str = _param(
         "material_estimates.yaml", "Where to write the estimates (a prediction_node params file)."
     )
+    close_loop: bool = _param(
+        False, "After the fit, close the loop: look for an effect the model lacks in the residual, "
+        "refit with it, report before and after (mosiv close-loop) into close_loop_dir.")
+    close_loop_dir: str = _param("close_loop", "Directory of the loop closure's report and closed scene.")
     scene: str = _param("", SCENE_HELP)
 
 

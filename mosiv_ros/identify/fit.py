@@ -48,7 +48,7 @@ from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
-from mosiv_ros.sim.materials import FAMILY_PARAMS
+from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
 
 _LOG = logging.getLogger(__name__)
 
@@ -84,8 +84,10 @@ class FitProblem:
 
     ``free`` names the parameters to fit: a per-object material parameter name applies to every
     object whose family uses it, except where ``fixed[object name]`` lists it (a declared, known
-    value); other names (``ground.friction``, ``drag.coefficient``) are fitted as they are. Every
-    other parameter keeps its value in the simulator.
+    value); a per-object effect parameter (``drag.coefficient``) applies to every object not
+    ``fixed`` for it; other names (``ground.friction``) are fitted as they are, a vector as all
+    its components or one (``wind.a[1]``). Every other parameter keeps its value in the
+    simulator.
     """
 
     objects: list[ObjectModel]
@@ -194,15 +196,18 @@ class Identifier:
     def _entries(self, free: list[str]) -> list[Entry]:
         entries = []
         params = self.sim.params
-        for name in free:
+        for free_name in free:
+            name, component = _component(free_name)
             spec = params.spec(name)
             coordinate = Coordinate.for_spec(spec)
             if spec.per_object:
                 for k, obj in enumerate(self.problem.objects):
-                    if name in FAMILY_PARAMS[obj.family] and name not in self.problem.fixed.get(obj.name, ()):
+                    uses = name in FAMILY_PARAMS[obj.family] or name not in MATERIAL_PARAM_NAMES
+                    if uses and name not in self.problem.fixed.get(obj.name, ()):
                         entries.append(Entry(name, (0, k), coordinate, f"{obj.name}.{name}", True))
             elif spec.size > 1:
-                entries += [Entry(name, (0, c), coordinate, f"{name}[{c}]") for c in range(spec.size)]
+                components = range(spec.size) if component is None else [component]
+                entries += [Entry(name, (0, c), coordinate, f"{name}[{c}]") for c in components]
             else:
                 entries.append(Entry(name, (0,), coordinate, name))
         boundary = self.problem.boundary
@@ -495,6 +500,14 @@ class Identifier:
         except (OSError, KeyError, ValueError) as error:
             _LOG.warning("cannot read checkpoint %s (%s); starting afresh", path, error)
             return None
+
+
+def _component(name: str) -> tuple[str, int | None]:
+    """``"wind.a[1]"`` -> ("wind.a", 1): one component of a vector parameter; else (name, None)."""
+    if name.endswith("]") and "[" in name:
+        base, index = name[:-1].split("[", 1)
+        return base, int(index)
+    return name, None
 
 
 class _Adam:

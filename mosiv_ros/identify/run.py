@@ -6,6 +6,9 @@ estimate the uncertainty, and turn the result into ``Estimates``. A failed fit (
 that keeps diverging, a problem that cannot be built) is reported as ERROR estimates rather than
 raised, so that a node keeps running and a late subscriber learns what went wrong.
 
+``fit_problem`` fits a problem already built (the loop closure, ``mosiv_ros.loop``, adds
+effects to one before fitting it).
+
 What it is for: the stage as a unit. What it is not for: its parts (``problem``, ``fit``,
 ``estimates``).
 """
@@ -20,7 +23,7 @@ import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
-from mosiv_ros.identify.fit import FitResult, FitSettings, Identifier
+from mosiv_ros.identify.fit import FitProblem, FitResult, FitSettings, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem
 from mosiv_ros.io.scene import Scene
@@ -61,16 +64,27 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
     frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
     window = min(config.window or len(frames), len(frames))
     try:
-        options = ProblemOptions(use_masks=config.silhouette_weight > 0 and bool(views))
-        problem = build_problem(frames[:window], lifted, scene, views, gripper_poses, options)
-        problem.sim_config.device = config.device
-        identifier = Identifier(problem, fit_settings(config), progress)
-        result = identifier.run()
-        std = coordinate_std(identifier, result) if config.uncertainty else None
-        return Identification(estimates_of(identifier, result, std), identifier, result, window)
+        problem = build_problem(frames[:window], lifted, scene, views, gripper_poses,
+                                problem_options(config, views))
+        return fit_problem(problem, config, progress, window)
     except (ProblemError, SimulationError, ValueError) as error:
         _LOG.error("identification failed: %s", error)
         return Identification(failed_estimates(lifted, scene, str(error), frames), window=window)
+
+
+def problem_options(config: IdentifyConfig, views: Sequence[View]) -> ProblemOptions:
+    """The problem options identify_node's parameters imply (masks only for a silhouette loss)."""
+    return ProblemOptions(use_masks=config.silhouette_weight > 0 and bool(views))
+
+
+def fit_problem(problem: FitProblem, config: IdentifyConfig,
+                progress: Callable[[dict], None] | None = None, window: int = 0) -> Identification:
+    """Fit a built problem (on ``config.device``) and estimate its uncertainty; errors raise."""
+    problem.sim_config.device = config.device
+    identifier = Identifier(problem, fit_settings(config), progress)
+    result = identifier.run()
+    std = coordinate_std(identifier, result) if config.uncertainty else None
+    return Identification(estimates_of(identifier, result, std), identifier, result, window)
 
 
 def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,

@@ -10,6 +10,11 @@ status per object named ``mosiv/<object>`` with hardware_id the object id, plus 
 and writes the estimates to ``output_yaml`` (which prediction_node also reads). A failed fit is
 published as ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
 silhouettes stay with the reconstruction (``mosiv run`` uses both).
+
+With ``close_loop`` it then closes the loop on the same frames (``mosiv_ros.loop``: the last
+30 % of the window held out to judge candidate effects) and writes the report, the closed
+model's estimates and its scene declaration (``closed_scene.yaml``, a ``scene`` parameter for
+prediction_node) into ``close_loop_dir``.
 """
 
 from __future__ import annotations
@@ -27,9 +32,12 @@ from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.loop.closure import LoopClosure, LoopError
+from mosiv_ros.loop.report import write_loop_report
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
 from mosiv_ros.nodes.outputs import diagnostics_msg
 from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.sim.errors import SimulationError
 
 NAME = "identify_node"
 SUMMARY = "fit per-object material parameters with the differentiable MPM simulator"
@@ -123,6 +131,25 @@ class IdentifyNode(Node):
             values = ", ".join(f"{k}={v:.4g}" for k, v in obj.params.items())
             self.get_logger().info(f"estimate {obj.name} ({obj.family}) {obj.level}: {values}")
         self.get_logger().info(f"identification done in {time.monotonic() - started:.1f} s")
+        if self.config.close_loop:
+            self._close_loop(frames)
+
+    def _close_loop(self, frames: list[ObservedFrame]) -> None:
+        started = time.monotonic()
+
+        def progress(phase: str, done: int, total: int) -> None:
+            self.get_logger().info(f"loop closure: {phase} {done}/{total}")
+
+        try:
+            result = LoopClosure(frames, self.particles, self.scene, self.config,
+                                 progress=progress).run()
+        except (LoopError, SimulationError, ValueError) as error:
+            self.get_logger().error(f"loop closure failed: {error}")
+            return
+        write_loop_report(self.config.close_loop_dir, result)
+        added = ", ".join(result.after.names) or "none"
+        self.get_logger().info(f"loop closure: {result.verdict}; effects added: {added}; report in "
+                               f"{self.config.close_loop_dir} ({time.monotonic() - started:.1f} s)")
 
 
 def main(args: list[str] | None = None) -> int:

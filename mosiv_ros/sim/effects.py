@@ -15,7 +15,9 @@ Both hooks must only *add*, with ``wp.atomic_add``: an in-place ``a[i] = a[i] + 
 give wrong adjoints on the tape. ``values`` maps the effect's own parameter names to their
 replicated arrays: read value ``j`` (layout ``[batch][object][component]``) in thread ``tid``
 with ``mosiv_ros.sim.params.param(values, j, tid)``. Built-in effects: gravity, a uniform body
-force (wind), linear and quadratic air drag, and Kelvin-Voigt damping. Ground friction and a
+force (wind), linear and quadratic air drag, Kelvin-Voigt damping, and a spatially periodic
+force field (a position-dependent force, for testing what no uniform effect explains). Ground
+friction and a
 tilted floor are the ground's parameters (``ground.friction``, ``ground.normal``; see
 ``boundaries``).
 
@@ -175,6 +177,29 @@ def kelvin_voigt_kernel(
     wp.atomic_add(tau, i, (C[i] + wp.transpose(C[i])) * (J * eta))
 
 
+@wp.kernel
+def periodic_field_kernel(
+    m: wp.array(dtype=float),
+    amplitude: wp.array(dtype=float),
+    wavelength: wp.array(dtype=float),
+    per_batch: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo_x: float,
+    dx: float,
+    a: wp.array(dtype=wp.vec3),
+):
+    """A += amplitude sin(2 pi x / wavelength) at every node with mass, x its world x."""
+    i = wp.tid()
+    if m[i] > 0.0:
+        b = i // per_batch
+        x = lo_x + dx * float((i % n_nodes) // (dims[1] * dims[2]))
+        s = wp.sin(2.0 * wp.pi * x / param(wavelength, b, i))
+        g = wp.vec3(param(amplitude, 3 * b, i), param(amplitude, 3 * b + 1, i),
+                    param(amplitude, 3 * b + 2, i))
+        wp.atomic_add(a, i, g * s)
+
+
 # --- built-in effects ---------------------------------------------------------------------------
 
 
@@ -250,6 +275,28 @@ class KelvinVoigtDamping(Effect):
         return density * dx * dx / (6.0 * eta) if eta > 0 else math.inf
 
 
+class PeriodicField(Effect):
+    """A position-dependent body force a sin(2 pi x / wavelength), m/s^2 (x: world x, m).
+
+    A stand-in for forces that vary in space (a fan's jet, a magnet): uniform effects cannot
+    reproduce it, so the recorder uses it to test that the loop closure says "unexplained".
+    """
+
+    name = "periodic_field"
+    params = (ParamSpec("a", (0.0, 0.0, 0.0), -100.0, 100.0, "m/s^2", "amplitude vector", size=3),
+              ParamSpec("wavelength", 0.2, 1.0e-3, 1.0e3, "m", "period along world x"))
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        wp.launch(
+            periodic_field_kernel,
+            dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+            inputs=[grid.m, values["a"], values["wavelength"], grid.n_objects * grid.n_nodes,
+                    grid.n_nodes, wp.vec3i(*grid.dims), float(grid.lo[0]), grid.dx],
+            outputs=[grid.a],
+            device=grid.device,
+        )
+
+
 def _uniform(grid: GridView, vector: wp.array) -> None:
     wp.launch(
         uniform_acceleration_kernel,
@@ -271,6 +318,7 @@ def _drag(grid: GridView, coefficient: wp.array, quadratic: bool) -> None:
 
 
 BUILTIN_EFFECTS: dict[str, type[Effect]] = {
-    cls.name: cls for cls in (Gravity, BodyForce, LinearDrag, QuadraticDrag, KelvinVoigtDamping)
+    cls.name: cls for cls in (Gravity, BodyForce, LinearDrag, QuadraticDrag, KelvinVoigtDamping,
+                               PeriodicField)
 }
 """Effects by name, for configuration files."""

@@ -15,6 +15,8 @@ from object name to number, objects left out getting the simulator's default):
 - ``drag`` {coefficient}: quadratic air drag a = -c |v| v, 1/m per object (``QuadraticDrag``).
 - ``linear_drag`` {coefficient}: a = -c v, 1/s per object (``LinearDrag``).
 - ``damping`` {viscosity}: Kelvin-Voigt velocity damping, Pa*s per object.
+- ``periodic_field`` {a: [ax, ay, az], wavelength}: a position-dependent body force
+  a sin(2 pi x / wavelength), m/s^2 and m (``PeriodicField``; outside the loop closure's library).
 - ``floor_tilt`` {normal: [nx, ny, nz]}: the floor plane's normal (it still passes through the
   ground height along that normal); the rendered floor tilts with it.
 - ``floor_friction`` {friction}: the floor's Coulomb coefficient instead of the nominal 0.5.

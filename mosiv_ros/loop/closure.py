@@ -1,0 +1,415 @@
+"""The loop closure: fit, find the residual, trace it to a missing effect, add it, refit, repeat.
+
+``LoopClosure(frames, lifted, scene, identify_config, loop_config).run()`` on stages 1-2's
+output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
+
+1. Split the frames: the first ``1 - holdout`` are fitted, the rest are held out (never fitted;
+   they decide whether an effect is accepted).
+2. Fit the declared model (``identify.run.fit_problem``) and roll its twin over every frame.
+3. Analyse the residual (``loop.residual``). The evidence vector is the centroid residual of
+   every object and frame (divided by ``centroid_noise``) and the radius-of-gyration residual
+   (divided by ``shape_noise``), all frames after the first. What a refit of the same model
+   can absorb is projected out first: per object and axis, a constant and a term linear in
+   time (the position and initial velocity are refitted). If the rest has a mean square of
+   at most ``significance`` (in units of the noise), there is nothing to explain: stop.
+4. Rank the library's candidates (``loop.library``) by how much of that rest their signature
+   explains: each knob is switched on by its probe step alone in the current twin, the change
+   of the evidence per unit of the knob is one column, and a bounded least-squares fit (knobs
+   inside their ranges, the nuisance terms free) gives the explained fraction
+   R^2 = 1 - |rest after| ^2 / |rest before|^2 and a first estimate of each knob.
+5. Refit the model with each of the ``top_k`` leading candidates whose R^2 reaches
+   ``min_explained`` (the effect's knobs start at their first estimate, the objects' parameters
+   at the current fit), and roll out each twin.
+6. **Acceptance**: a candidate with p knobs is accepted when its held-out centroid error E_new
+   (RMS over the held-out frames and objects) satisfies
+   E_new <= margin * exp(-penalty * p) * E_current
+   (defaults 0.8 and 0.1: a one-knob effect must cut the held-out error by 28 %, a two-knob one
+   by 35 %); equivalently its penalised score ln E + penalty * p beats the current model's by
+   ln(1 / margin). Of several accepted, the lowest held-out error wins.
+7. Repeat from 3 with the accepted effect in the model, at most ``max_rounds`` times.
+
+Verdicts: ``nothing to explain`` (the first residual is at the noise level), ``explained``
+(effects were accepted and the residual is at the noise level), ``unexplained`` (no candidate's
+signature reaches ``min_explained``, or none of the refits pays for itself: the residual is
+reported, not attributed to the nearest effect), ``partly explained`` (effects were accepted,
+but what is left is still above the noise and nothing explains it).
+
+What it is for: ``mosiv close-loop`` and identify_node's ``close_loop`` option.
+What it is not for: the report files (``loop.report``).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.fit import OFFSET, FitProblem, Identifier
+from mosiv_ros.identify.observations import View
+from mosiv_ros.identify.problem import build_problem
+from mosiv_ros.identify.run import Identification, fit_problem, fit_settings, problem_options
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.loop.library import LIBRARY, Candidate, Context
+from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
+from mosiv_ros.predict.twin import Prediction
+from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.sim.errors import SimulationError
+from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
+
+_LOG = logging.getLogger(__name__)
+
+NOTHING, EXPLAINED, UNEXPLAINED, PARTLY = ("nothing to explain", "explained", "unexplained",
+                                           "partly explained")
+
+
+@dataclass
+class LoopConfig:
+    """Settings of the loop closure (see the module docstring for each one's role)."""
+
+    holdout: float = 0.3
+    top_k: int = 2
+    min_explained: float = 0.5
+    significance: float = 1.0
+    centroid_noise: float = 0.002
+    shape_noise: float = 0.002
+    margin: float = 0.8
+    penalty: float = 0.1
+    max_rounds: int = 3
+    moving_threshold: float = 0.01
+    """Least observed centroid travel (m) for an object to count as moving."""
+    contact_tolerance: float = 0.01
+    silhouettes: bool = True
+    """Per-camera silhouette residuals in the analysis (descriptive only)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.holdout < 1.0:
+            raise ValueError(f"holdout must be in (0, 1), got {self.holdout}")
+        if self.top_k < 1 or self.max_rounds < 1:
+            raise ValueError(f"top_k and max_rounds must be >= 1, got {self.top_k}, {self.max_rounds}")
+        if not 0.0 < self.margin <= 1.0 or self.penalty < 0:
+            raise ValueError(f"margin must be in (0, 1] and penalty >= 0, got {self.margin}, {self.penalty}")
+        if self.centroid_noise <= 0 or self.shape_noise <= 0:
+            raise ValueError("centroid_noise and shape_noise must be positive")
+
+    def threshold(self, knobs: int) -> float:
+        """Largest held-out error ratio (new / current) that accepts an effect of ``knobs`` knobs."""
+        return self.margin * math.exp(-self.penalty * knobs)
+
+
+@dataclass
+class Model:
+    """One fitted model: the effects it adds to the declaration, their fitted values, its twin."""
+
+    effects: list[tuple[Candidate, dict[str, float]]]
+    scene: Scene
+    estimates: Estimates
+    identification: Identification
+    prediction: Prediction
+    analysis: ResidualAnalysis
+    seconds: float
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c, _ in self.effects]
+
+    @property
+    def held_out_error(self) -> float:
+        return self.analysis.errors()["held_out"]
+
+
+@dataclass
+class Ranked:
+    """A candidate's ranking: explained fraction, first knob estimates, and its refit, if any."""
+
+    candidate: Candidate
+    explained: float
+    estimate: dict[str, float]
+    refit: Model | None = None
+    ratio: float = math.nan
+    threshold: float = math.nan
+    accepted: bool = False
+    note: str = ""
+
+
+@dataclass
+class Round:
+    significance: float
+    ranking: list[Ranked] = field(default_factory=list)
+    accepted: str = ""
+
+
+@dataclass
+class LoopResult:
+    before: Model
+    after: Model
+    rounds: list[Round]
+    verdict: str
+    window: int
+    config: LoopConfig
+    seconds: float
+
+
+class LoopError(ValueError):
+    """The loop cannot run on this input (too few frames to hold any out, no objects)."""
+
+
+class LoopClosure:
+    """The loop on one recording's stages 1-2 output (see the module docstring).
+
+    ``progress(phase, done, total)`` is called after every fit iteration.
+    """
+
+    def __init__(self, frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
+                 identify: IdentifyConfig, loop: LoopConfig | None = None,
+                 views: Sequence[View] = (), gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
+                 library: Sequence[Candidate] = LIBRARY,
+                 progress: Callable[[str, int, int], None] | None = None) -> None:
+        self.loop = loop or LoopConfig()
+        self.frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
+        self.window = int(round(len(self.frames) * (1 - self.loop.holdout)))
+        if self.window < 3 or self.window >= len(self.frames):
+            raise LoopError(f"{len(self.frames)} frames with holdout {self.loop.holdout}: need at "
+                            "least 3 fitted and 1 held-out frame")
+        self.lifted, self.scene, self.identify = lifted, scene, identify
+        self.views, self.gripper_poses = list(views), list(gripper_poses)
+        self.library, self.progress = list(library), progress
+        self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
+                      if scene.ground is not None else None)
+
+    # --- models ------------------------------------------------------------------------------
+
+    def context(self, model: Model) -> Context:
+        centroids = model.analysis.observed
+        travel = np.nanmax(np.linalg.norm(centroids - centroids[:1], axis=-1), axis=0)
+        moving = [bool(t > self.loop.moving_threshold) for t in np.nan_to_num(travel)]
+        return Context(list(model.prediction.names), moving, model.scene)
+
+    def problem(self, scene: Scene, effects: Sequence[Candidate], ctx: Context | None) -> FitProblem:
+        """The fit problem of ``scene`` over the fitted frames, with the effects' knobs free.
+
+        The simulation domain covers every frame (held-out ones too), so that one domain serves
+        the fit and the rollouts over the whole recording.
+        """
+        problem = build_problem(self.frames, self.lifted, scene, self.views, self.gripper_poses,
+                                problem_options(self.identify, self.views))
+        problem.observations = problem.observations.select(slice(0, self.window))
+        problem.sim_config.device = self.identify.device
+        for candidate in effects:
+            free, fixed = candidate.free(ctx)
+            problem.free += [name for name in free if name not in problem.free]
+            for name, params in fixed.items():
+                problem.fixed.setdefault(name, set()).update(params)
+        return problem
+
+    def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
+            label: str) -> Model:
+        """Fit the declared model plus ``effects`` (knobs at their initial values).
+
+        The objects' parameters start afresh (at the simulator's defaults), as in the first fit:
+        a fit without the missing effect distorts them, and its values are a poor start.
+        """
+        tick = time.perf_counter()
+        scene = self.scene
+        for candidate, values in effects:
+            scene = candidate.declare(scene, values, ctx)
+        problem = self.problem(scene, [c for c, _ in effects], ctx)
+        total = len(self.identify.curriculum) * self.identify.iterations
+        done = [0]
+
+        def progress(_record: dict) -> None:
+            done[0] += 1
+            if self.progress:
+                self.progress(label, done[0], total)
+
+        identification = fit_problem(problem, self.identify, progress, self.window)
+        fitted = [(c, c.read(identification.estimates, ctx)) for c, _ in effects]
+        closed = self.scene
+        for candidate, values in fitted:
+            closed = candidate.declare(closed, values, ctx)
+        identifier = identification.identifier
+        prediction = self.rollout(identifier)
+        analysis = self.analyse(prediction)
+        _LOG.info("%s: held-out centroid error %.2f mm (fitted frames %.2f mm), %s", label,
+                  analysis.errors()["held_out"] * 1e3, analysis.errors()["fitted"] * 1e3,
+                  ", ".join(f"{k}={v:.4g}" for _, values in fitted for k, v in values.items()) or "declared model")
+        return Model(fitted, closed, _material_estimates(identification.estimates), identification,
+                     prediction, analysis, time.perf_counter() - tick)
+
+    def rollout(self, identifier: Identifier) -> Prediction:
+        """The identifier's simulation, as it stands, over every frame of the recording."""
+        n = len(self.frames) - 1
+        dt = identifier.problem.observations.frame_dt
+        positions = identifier.sim.rollout(n)[:, 0].astype(np.float64)
+        objects = identifier.problem.objects
+        return Prediction(self.frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
+                          identifier.index, [o.id for o in objects], [o.name for o in objects])
+
+    def probe(self, model: Model, scene: Scene, ctx: Context) -> Prediction:
+        """``model`` with ``scene``'s declaration instead of its own, rolled out unfitted."""
+        problem = self.problem(scene, [], ctx)
+        _start_at(problem, model.estimates)
+        identifier = Identifier(problem, fit_settings(self.identify))
+        fitted = model.identification.identifier
+        identifier.offsets[:] = fitted.offsets
+        identifier._apply(identifier._pack(), model.identification.result.velocity)
+        return self.rollout(identifier)
+
+    def analyse(self, prediction: Prediction) -> ResidualAnalysis:
+        views = self.views if self.loop.silhouettes else ()
+        return analyse(self.frames, prediction, self.window, self.floor, views,
+                       self.loop.contact_tolerance)
+
+    # --- evidence and ranking ----------------------------------------------------------------
+
+    def evidence(self, prediction: Prediction) -> np.ndarray:
+        """The evidence of a prediction: its centroid and shape residuals in noise units."""
+        analysis = analyse(self.frames, prediction, self.window, self.floor, (),
+                           self.loop.contact_tolerance)
+        return np.concatenate([(analysis.centroid[1:] / self.loop.centroid_noise).ravel(),
+                               (analysis.shape[1:] / self.loop.shape_noise).ravel()])
+
+    def nuisance(self, n_objects: int) -> np.ndarray:
+        """Columns a refit absorbs: per object and axis a constant and a linear term.
+
+        Those are for the centroid block; the shape block gets a constant per object.
+        """
+        n = len(self.frames) - 1
+        t = np.arange(1, n + 1, dtype=np.float64) / n
+        columns = []
+        size = n * n_objects * 3 + n * n_objects
+        for k in range(n_objects):
+            for axis in range(3):
+                for basis in (np.ones(n), t):
+                    column = np.zeros((n, n_objects, 3))
+                    column[:, k, axis] = basis
+                    columns.append(np.concatenate([column.ravel(), np.zeros(n * n_objects)]))
+            column = np.zeros((n, n_objects))
+            column[:, k] = 1.0
+            columns.append(np.concatenate([np.zeros(n * n_objects * 3), column.ravel()]))
+        return np.stack(columns, axis=1) if columns else np.zeros((size, 0))
+
+    def rest(self, model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(evidence, nuisance columns, rows used) of a model."""
+        r = self.evidence(model.prediction)
+        N = self.nuisance(len(model.prediction.object_ids))
+        rows = np.isfinite(r)
+        return r, N, rows
+
+    def significance(self, model: Model) -> float:
+        """Mean square of the evidence beyond what the nuisance terms absorb (noise units)."""
+        r, N, rows = self.rest(model)
+        if not rows.any():
+            return 0.0
+        coef = np.linalg.lstsq(N[rows], r[rows], rcond=None)[0]
+        left = r[rows] - N[rows] @ coef
+        return float(np.mean(left**2))
+
+    def rank(self, candidate: Candidate, model: Model, ctx: Context) -> Ranked:
+        knobs = candidate.knobs(ctx)
+        r, N, rows = self.rest(model)
+        columns = []
+        for knob in knobs:
+            values = {k.label: k.neutral for k in knobs}
+            values[knob.label] = knob.neutral + knob.probe
+            try:
+                probe = self.probe(model, candidate.declare(model.scene, values, ctx), ctx)
+            except SimulationError as error:
+                return Ranked(candidate, 0.0, {}, note=f"probe diverged: {error}")
+            # the knob moves the prediction by column * value, the residual by minus that
+            columns.append((self.evidence(model.prediction) - self.evidence(probe)) / knob.probe)
+        J = np.stack(columns, axis=1)
+        rows = rows & np.all(np.isfinite(J), axis=1)
+        A = np.concatenate([J, N], axis=1)[rows]
+        lower = [k.lower - k.neutral for k in knobs] + [-np.inf] * N.shape[1]
+        upper = [k.upper - k.neutral for k in knobs] + [np.inf] * N.shape[1]
+        solution = lsq_linear(A, r[rows], bounds=(lower, upper))
+        before = r[rows] - N[rows] @ np.linalg.lstsq(N[rows], r[rows], rcond=None)[0]
+        after = r[rows] - A @ solution.x
+        explained = 1.0 - float(after @ after) / max(float(before @ before), 1e-12)
+        estimate = {k.label: float(np.clip(k.neutral + solution.x[i], k.lower, k.upper))
+                    for i, k in enumerate(knobs)}
+        return Ranked(candidate, explained, estimate)
+
+    # --- the loop ----------------------------------------------------------------------------
+
+    def run(self) -> LoopResult:
+        tick = time.perf_counter()
+        loop = self.loop
+        before = current = self.fit([], None, "fit declared model")
+        rounds: list[Round] = []
+        verdict = ""
+        for _ in range(loop.max_rounds):
+            significance = self.significance(current)
+            round_ = Round(significance)
+            rounds.append(round_)
+            _LOG.info("residual: mean square %.3g noise units (threshold %.3g)", significance,
+                      loop.significance)
+            if significance <= loop.significance:
+                verdict = EXPLAINED if current.effects else NOTHING
+                break
+            ctx = self.context(current)
+            have = set(current.names)
+            candidates = [c for c in self.library if c.name not in have and c.applicable(ctx)]
+            round_.ranking = sorted((self.rank(c, current, ctx) for c in candidates),
+                                    key=lambda r: -r.explained)
+            _LOG.info("ranking: %s", ", ".join(f"{r.candidate.name} {r.explained:.2f}" for r in round_.ranking))
+            leading = [r for r in round_.ranking if r.explained >= loop.min_explained][:loop.top_k]
+            for ranked in leading:
+                self.try_candidate(ranked, current, ctx)
+            accepted = [r for r in leading if r.accepted]
+            if not accepted:
+                verdict = PARTLY if current.effects else UNEXPLAINED
+                break
+            best = min(accepted, key=lambda r: r.refit.held_out_error)
+            round_.accepted = best.candidate.name
+            current = best.refit
+        else:
+            verdict = EXPLAINED if self.significance(current) <= loop.significance else PARTLY
+        _LOG.info("loop closure: %s; effects added: %s", verdict, ", ".join(current.names) or "none")
+        return LoopResult(before, current, rounds, verdict, self.window, loop,
+                          time.perf_counter() - tick)
+
+    def try_candidate(self, ranked: Ranked, current: Model, ctx: Context) -> None:
+        candidate = ranked.candidate
+        effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
+        try:
+            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}")
+        except (SimulationError, ValueError) as error:
+            ranked.note = f"refit failed: {error}"
+            return
+        ranked.threshold = self.loop.threshold(len(ranked.estimate))
+        ranked.ratio = ranked.refit.held_out_error / max(current.held_out_error, 1e-12)
+        ranked.accepted = bool(ranked.ratio <= ranked.threshold)
+        ranked.note = (f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})")
+
+
+def _material_estimates(estimates: Estimates) -> Estimates:
+    """The estimates with effect parameters taken out of the objects (the scene carries them)."""
+    keep = set(MATERIAL_PARAM_NAMES) | {OFFSET}
+    objects = [replace(o, params={k: v for k, v in o.params.items() if k in keep},
+                       std={k: v for k, v in o.std.items() if k in keep}) for o in estimates.objects]
+    return replace(estimates, objects=objects)
+
+
+def _start_at(problem: FitProblem, estimates: Estimates) -> None:
+    """Set a problem's free object and ground parameters to where a fit ended."""
+    by_name = {o.name: o for o in estimates.objects}
+    for obj in problem.objects:
+        previous = by_name.get(obj.name)
+        if previous is None:
+            continue
+        for name, value in previous.params.items():
+            if name in problem.free and name not in problem.fixed.get(obj.name, ()):
+                obj.params[name] = value
+    if "ground.friction" in estimates.scene and problem.sim_config.ground is not None:
+        problem.sim_config.ground = copy.copy(problem.sim_config.ground)
+        problem.sim_config.ground.friction = estimates.scene["ground.friction"]

@@ -1,0 +1,247 @@
+"""The loop closure's effect library: effects a model may lack, each with its signature and knobs.
+
+A ``Candidate`` is one effect the loop can add to a scene's model. It declares
+
+- ``knobs(ctx)``: the parameters it adds (``Knob``: a label, the value the current model has,
+  the step by which the signature is measured, the range);
+- ``declare(scene, values, ctx)``: the scene declaration with the effect at those values. The
+  simulator builds its effects and floor from the declaration (``identify.problem``,
+  ``predict.twin``), so a candidate is only ever a change of declaration;
+- ``free(ctx)``: the simulator parameters a refit fits (and, per object, those it keeps fixed);
+- ``read(estimates, ctx)``: the fitted knob values from a refit's estimates.
+
+Its residual signature is what the effect does to the twin's observables: the loop switches
+each knob on by its ``probe`` step alone in the current twin, rolls it out, and takes the change
+of the observed features (centroid paths, shape) per unit of the knob. The effect explains the
+residual to the degree that a combination of those columns, with the knobs inside their ranges,
+reproduces it (``closure``). Adding an effect means adding a ``Candidate`` here (and, for a new
+physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes.
+
+The library (``LIBRARY``):
+
+- ``drag``: quadratic air drag a = -c |v| v per moving object (1/m): a deceleration growing with
+  the square of the speed, strongest in fast flight;
+- ``linear_drag``: a = -c v per moving object (1/s): a deceleration proportional to speed;
+- ``wind``: a uniform horizontal acceleration (m/s^2), in flight and while sliding. A gravity
+  tilted against the declared vertical acts the same way on everything the cameras see (its
+  horizontal part is a uniform acceleration, its vertical change is second order), so this
+  candidate stands for both;
+- ``floor_tilt``: the floor's normal tilted by (nx, ny) (the normal is (nx, ny, 1) normalised):
+  a downhill acceleration only where an object touches the floor;
+- ``floor_friction``: the declared floor friction is wrong: a deceleration along the sliding
+  direction while on the floor (only when the declaration gives the friction; otherwise it is
+  fitted anyway);
+- ``damping``: Kelvin-Voigt velocity damping per moving object (Pa*s): deformation (bounces,
+  wobble) dies out faster; it shows in the shape and in the rebound, not in free flight.
+
+What it is not for: the loop itself (``closure``) or the physics (``mosiv_ros.sim``).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+from typing import ClassVar
+
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.io.scene import DeclaredEffect, Scene
+
+
+@dataclass
+class Context:
+    """What a candidate needs to know of the model: object names, which move, the scene."""
+
+    names: list[str]
+    moving: list[bool]
+    scene: Scene
+
+    @property
+    def moving_names(self) -> list[str]:
+        return [n for n, m in zip(self.names, self.moving, strict=True) if m]
+
+    @property
+    def static_names(self) -> list[str]:
+        return [n for n, m in zip(self.names, self.moving, strict=True) if not m]
+
+
+@dataclass
+class Knob:
+    """One parameter a candidate adds.
+
+    ``label``, its value in the current model (``neutral``), the step that measures its
+    signature (``probe``) and its valid range.
+    """
+
+    label: str
+    neutral: float
+    probe: float
+    lower: float
+    upper: float
+
+
+class Candidate:
+    """Base class of the library's effects (see the module docstring)."""
+
+    name: ClassVar[str] = ""
+    doc: ClassVar[str] = ""
+    signature: ClassVar[str] = ""
+    """The residual it predicts, in words (for the report)."""
+
+    def applicable(self, ctx: Context) -> bool:
+        return not any(e.name == self.name for e in ctx.scene.effects)
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        raise NotImplementedError
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        raise NotImplementedError
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        raise NotImplementedError
+
+    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+        raise NotImplementedError
+
+
+def _with_effect(scene: Scene, effect: DeclaredEffect) -> Scene:
+    result = copy.deepcopy(scene)
+    result.effects = [e for e in result.effects if e.name != effect.name] + [effect]
+    return Scene(result.objects, result.gripper, result.extra, result.ground, result.effects)
+
+
+def _with_ground(scene: Scene, **changes: object) -> Scene:
+    result = copy.deepcopy(scene)
+    return Scene(result.objects, result.gripper, result.extra, {**result.ground, **changes},
+                 result.effects)
+
+
+class PerObjectEffect(Candidate):
+    """A simulator effect with one per-object parameter, added for the moving objects."""
+
+    param: ClassVar[str] = ""
+    probe: ClassVar[float] = 1.0
+    upper: ClassVar[float] = 1.0e3
+
+    def label(self, name: str) -> str:
+        return f"{self.name}.{self.param}[{name}]"
+
+    def applicable(self, ctx: Context) -> bool:
+        return super().applicable(ctx) and bool(ctx.moving_names)
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        return [Knob(self.label(n), 0.0, self.probe, 0.0, self.upper) for n in ctx.moving_names]
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        per_object = {n: float(values.get(self.label(n), 0.0)) for n in ctx.moving_names}
+        return _with_effect(scene, DeclaredEffect(self.name, {self.param: per_object}))
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        full = f"{self.name}.{self.param}"
+        return [full], {n: {full} for n in ctx.static_names}
+
+    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+        full = f"{self.name}.{self.param}"
+        return {self.label(o.name): o.params[full] for o in estimates.objects if full in o.params}
+
+
+class QuadraticDragCandidate(PerObjectEffect):
+    name = "drag"
+    param = "coefficient"
+    probe = 0.5
+    doc = "quadratic air drag a = -c |v| v, c per moving object (1/m)"
+    signature = "deceleration along the velocity, growing with speed squared (fast flight)"
+
+
+class LinearDragCandidate(PerObjectEffect):
+    name = "linear_drag"
+    param = "coefficient"
+    probe = 0.5
+    doc = "linear drag a = -c v, c per moving object (1/s)"
+    signature = "deceleration along the velocity, proportional to speed"
+
+
+class DampingCandidate(PerObjectEffect):
+    name = "damping"
+    param = "viscosity"
+    probe = 20.0
+    upper = 1.0e5
+    doc = "Kelvin-Voigt velocity damping per moving object (Pa*s)"
+    signature = "deformation (rebound, wobble) dying out faster than the material alone allows"
+
+
+class WindCandidate(Candidate):
+    name = "wind"
+    doc = "uniform horizontal acceleration (m/s^2): a steady wind, or gravity tilted off vertical"
+    signature = "constant horizontal acceleration, in flight and while sliding"
+    LABELS = ("wind.a[0]", "wind.a[1]")
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        return [Knob(label, 0.0, 0.5, -20.0, 20.0) for label in self.LABELS]
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        a = [float(values.get(label, 0.0)) for label in self.LABELS] + [0.0]
+        return _with_effect(scene, DeclaredEffect(self.name, {"a": a}))
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return list(self.LABELS), {}
+
+    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+        return {label: estimates.scene[label] for label in self.LABELS}
+
+
+class FloorTiltCandidate(Candidate):
+    name = "floor_tilt"
+    doc = "the floor's normal tilted to (nx, ny, 1) (normalised)"
+    signature = "downhill acceleration only while touching the floor"
+    LABELS = ("ground.normal[0]", "ground.normal[1]")
+
+    def applicable(self, ctx: Context) -> bool:
+        return ctx.scene.ground is not None and "normal" not in ctx.scene.ground
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        return [Knob(label, 0.0, 0.15, -0.7, 0.7) for label in self.LABELS]
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        normal = [float(values.get(label, 0.0)) for label in self.LABELS] + [1.0]
+        return _with_ground(scene, normal=normal)
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return list(self.LABELS), {}
+
+    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+        return {label: estimates.scene[label] for label in self.LABELS}
+
+
+def tilt_degrees(values: dict[str, float]) -> float:
+    """Tilt angle (deg) of the floor normal (nx, ny, 1) of ``FloorTiltCandidate`` values."""
+    nx, ny = (values.get(label, 0.0) for label in FloorTiltCandidate.LABELS)
+    return math.degrees(math.atan(math.hypot(nx, ny)))
+
+
+class FloorFrictionCandidate(Candidate):
+    name = "floor_friction"
+    doc = "the floor's Coulomb friction differs from the declared value"
+    signature = "deceleration along the sliding direction while on the floor"
+    LABEL = "ground.friction"
+
+    def applicable(self, ctx: Context) -> bool:
+        return ctx.scene.ground is not None and "friction" in ctx.scene.ground
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        declared = float(ctx.scene.ground["friction"])
+        return [Knob(self.LABEL, declared, 0.1, 0.0, 5.0)]
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        return _with_ground(scene, friction=float(values[self.LABEL]))
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return [self.LABEL], {}
+
+    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+        return {self.LABEL: estimates.scene[self.LABEL]}
+
+
+LIBRARY: tuple[Candidate, ...] = (QuadraticDragCandidate(), LinearDragCandidate(), WindCandidate(),
+                                  FloorTiltCandidate(), FloorFrictionCandidate(), DampingCandidate())
+"""Every candidate the loop tries, in this order when they explain equally well."""

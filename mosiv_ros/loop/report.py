@@ -1,0 +1,241 @@
+"""``mosiv close-loop BAG --out DIR``: the loop on a recording, and its report.
+
+``close_loop(bag, out, config, loop)`` runs stages 1-2 (``pipeline.prepare``), the loop
+(``closure.LoopClosure``) and writes into ``out``:
+
+- ``close_loop.json``: verdict, every round's candidate ranking (explained fraction, first knob
+  estimates, refit held-out error, ratio against the acceptance threshold, accepted or not),
+  the accepted effects with their fitted values, the model before and after (estimates,
+  centroid errors on the fitted and the held-out frames, CD/EMD (and IoU, PSNR, SSIM unless
+  ``render`` is off) from ``evaluate.twin``, parameter errors against ``ground_truth.yaml``
+  for a synthetic recording) and the residual analysis of both;
+- ``close_loop.md``: the same for a person to read;
+- plots per object: ``<object>_residual.png`` (centroid and shape residual over time, before
+  and after) and ``<object>_paths.png`` (observed vs predicted centroid paths, before and
+  after), and ``ranking.png`` (the candidates of every round);
+- ``closed_scene.yaml`` (the scene declaration with the accepted effects: a ``scene`` parameter
+  for prediction_node) and ``estimates.yaml`` (the closed model's estimates).
+
+What it is for: the command and identify_node's option. What it is not for: the loop's logic.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
+from mosiv_ros.identify.problem import views_of
+from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.scene import scene_to_yaml
+from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
+from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
+from mosiv_ros.pipeline import Prepared, RunConfig, prepare
+from mosiv_ros.report import jsonable
+
+_LOG = logging.getLogger(__name__)
+
+
+def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None,
+               loop: LoopConfig | None = None,
+               progress: Callable[[str, int, int], None] | None = None) -> dict:
+    """Run the loop closure on a recording and write its report into ``out``; return the JSON."""
+    config = config or RunConfig()
+    loop = loop or LoopConfig(holdout=config.holdout)
+    prepared = prepare(bag, config, progress)
+    closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene,
+                          config.identify, loop, views_of(prepared.recording),
+                          prepared.recording.gripper_poses, progress=progress)
+    result = closure.run()
+    return write_loop_report(out, result, prepared, config.render)
+
+
+def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | None = None,
+                      render: bool = False) -> dict:
+    """Write the files of the module docstring; ``prepared`` adds CD/EMD and truth scores."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    truth, truth_particles = _ground_truth(prepared)
+    report = {
+        "verdict": result.verdict, "frames": len(result.before.analysis.times),
+        "fitted_frames": result.window, "loop_seconds": result.seconds,
+        "criterion": (f"accept an effect of p knobs when held-out centroid error new/current <= "
+                      f"{result.config.margin} * exp(-{result.config.penalty} p)"),
+        "config": dict(result.config.__dict__),
+        "accepted": [_effect(c, values) for c, values in result.after.effects],
+        "rounds": [{"significance": r.significance, "accepted": r.accepted,
+                    "ranking": [_ranked(x) for x in r.ranking]} for r in result.rounds],
+        "before": _model(result.before, prepared, truth, truth_particles, render),
+        "after": _model(result.after, prepared, truth, truth_particles, render),
+    }
+    if truth is not None:
+        report["truth_effects"] = truth.get("effects", [])
+    (out / "closed_scene.yaml").write_text(scene_to_yaml(result.after.scene))
+    result.after.estimates.write(out / "estimates.yaml")
+    plots = _plots(out, result)
+    (out / "close_loop.json").write_text(json.dumps(jsonable(report), indent=1))
+    (out / "close_loop.md").write_text(_markdown(report, [p.name for p in plots]))
+    return report
+
+
+def _ground_truth(prepared: Prepared | None):
+    if prepared is None:
+        return None, None
+    from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
+
+    try:
+        return read_ground_truth(prepared.bag), read_ground_truth_particles(prepared.bag)
+    except BagError:
+        return None, None
+
+
+def _effect(candidate, values: dict[str, float]) -> dict:
+    entry = {"name": candidate.name, "doc": candidate.doc, "values": values}
+    if isinstance(candidate, FloorTiltCandidate):
+        entry["tilt_deg"] = tilt_degrees(values)
+    return entry
+
+
+def _ranked(ranked) -> dict:
+    return {"name": ranked.candidate.name, "signature": ranked.candidate.signature,
+            "explained": ranked.explained, "estimate": ranked.estimate,
+            "refit_held_out_error": ranked.refit.held_out_error if ranked.refit else None,
+            "refit_values": dict(ranked.refit.effects[-1][1]) if ranked.refit else None,
+            "ratio": ranked.ratio, "threshold": ranked.threshold, "accepted": ranked.accepted,
+            "note": ranked.note}
+
+
+def _model(model: Model, prepared: Prepared | None, truth, truth_particles, render: bool) -> dict:
+    entry = {"effects": [_effect(c, v) for c, v in model.effects],
+             "centroid_error": model.analysis.errors(), "fit_seconds": model.seconds,
+             "estimates": model.estimates.to_dict(), "residual": model.analysis.to_dict()}
+    if prepared is not None:
+        spacing = prepared.lifted.lattice_volume ** (1 / 3)
+        scores = score_frames(model.prediction, prepared.frames, prepared.recording,
+                              model.analysis.fitted, spacing, truth_particles, render)
+        entry["metrics"] = summarise(scores)
+    if truth is not None:
+        entry["parameter_errors"] = parameter_errors(model.estimates, truth)
+    return entry
+
+
+def _markdown(report: dict, plots: list[str]) -> str:
+    before, after = report["before"], report["after"]
+    lines = [f"# Loop closure: {report['verdict']}", "",
+             f"{report['frames']} frames, the first {report['fitted_frames']} fitted, the rest held "
+             f"out. Criterion: {report['criterion']}.", "", "## Effects accepted", ""]
+    if report["accepted"]:
+        for effect in report["accepted"]:
+            values = ", ".join(f"{k} = {v:.4g}" for k, v in effect["values"].items())
+            tilt = f" (tilt {effect['tilt_deg']:.2f} deg)" if "tilt_deg" in effect else ""
+            lines.append(f"- **{effect['name']}** ({effect['doc']}): {values}{tilt}")
+    else:
+        lines.append("- none")
+    if report.get("truth_effects"):
+        lines += ["", "Ground truth: " + ", ".join(
+            f"{e['type']} ({'declared' if e['declared'] else 'undeclared'}) {e['params']}"
+            for e in report["truth_effects"])]
+    lines += ["", "## Error before and after", "",
+              "| model | centroid RMS fitted (mm) | centroid RMS held-out (mm) | CD observed (mm) | CD future (mm) |",
+              "| --- | --- | --- | --- | --- |"]
+    for label, model in (("before", before), ("after", after)):
+        metrics = model.get("metrics", {})
+        cd = [_mm(metrics.get(part, {}).get("cd")) for part in ("observed", "future")]
+        lines.append(f"| {label} | {_mm(model['centroid_error']['fitted'])} | "
+                     f"{_mm(model['centroid_error']['held_out'])} | {cd[0]} | {cd[1]} |")
+    if "parameter_errors" in before:
+        lines += ["", "## Parameters against the truth", "",
+                  "| object | parameter | truth | before | after |", "| --- | --- | --- | --- | --- |"]
+        for name, params in before["parameter_errors"].items():
+            for param, err in params.items():
+                new = after["parameter_errors"].get(name, {}).get(param, {})
+                lines.append(f"| {name} | {param} | {err['truth']:.4g} | {err['estimate']:.4g} | "
+                             f"{new.get('estimate', float('nan')):.4g} |")
+    for i, round_ in enumerate(report["rounds"], 1):
+        lines += ["", f"## Round {i}: residual {round_['significance']:.3g} (noise units; "
+                  f"threshold {report['config']['significance']})", ""]
+        if not round_["ranking"]:
+            lines.append("No ranking: the residual is at the noise level.")
+            continue
+        lines += ["| candidate | explained | first estimate | refit held-out (mm) | ratio | accepted |",
+                  "| --- | --- | --- | --- | --- | --- |"]
+        for r in round_["ranking"]:
+            estimate = ", ".join(f"{k} {v:.3g}" for k, v in r["estimate"].items())
+            refit = _mm(r["refit_held_out_error"]) if r["refit_held_out_error"] is not None else ""
+            ratio = f"x{r['ratio']:.2f} (<= x{r['threshold']:.2f})" if r["refit_held_out_error"] is not None else ""
+            lines.append(f"| {r['name']} | {r['explained']:.2f} | {estimate} | {refit} | {ratio} | "
+                         f"{'yes' if r['accepted'] else 'no'} |")
+    lines += ["", "## Residual (before)", "", "| object | growth (mm/s) | oscillation | contact jump | "
+              "corr. speed | corr. speed^2 | corr. height | corr. contact |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for obj in before["residual"]["objects"]:
+        ts, cr = obj["time_structure"], obj["correlations"]
+        lines.append(f"| {obj['name']} | {_num(ts['growth_m_per_s'], 1e3)} | {_num(ts['oscillation'])} | "
+                     f"{_num(ts['contact_jump'])} | {_num(cr['speed'])} | {_num(cr['speed_squared'])} | "
+                     f"{_num(cr['height'])} | {_num(cr['contact'])} |")
+    lines += ["", f"Loop time {report['loop_seconds']:.0f} s.", "", "## Plots", ""]
+    lines += [f"![{p}]({p})" for p in plots]
+    return "\n".join(lines) + "\n"
+
+
+def _mm(value) -> str:
+    return "" if value is None or not np.isfinite(value) else f"{value * 1e3:.2f}"
+
+
+def _num(value, scale: float = 1.0) -> str:
+    return "" if value is None or not np.isfinite(value) else f"{value * scale:.2f}"
+
+
+def _plots(out: Path, result: LoopResult) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib import pyplot as plt
+
+    paths = []
+    before, after = result.before.analysis, result.after.analysis
+    t = before.times
+    end = t[result.window - 1]
+    for k, name in enumerate(before.names):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+        for analysis, style, label in ((before, "--", "before"), (after, "-", "after")):
+            axes[0].plot(t, np.linalg.norm(analysis.centroid[:, k], axis=-1) * 1e3, style, label=label)
+            axes[1].plot(t, analysis.shape[:, k] * 1e3, style, label=label)
+        axes[0].set(xlabel="t (s)", ylabel="mm", title=f"{name}: centroid residual")
+        axes[1].set(xlabel="t (s)", ylabel="mm", title=f"{name}: radius of gyration residual")
+        for axis in axes:
+            axis.axvline(end, color="grey", ls=":", lw=1)
+            axis.legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(out / f"{name}_residual.png")
+        fig.savefig(paths[-1], dpi=90)
+        plt.close(fig)
+        fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+        for axis_index, axis in enumerate(axes):
+            axis.plot(t, before.observed[:, k, axis_index], "k.", label="observed")
+            axis.plot(t, before.predicted[:, k, axis_index], "--", label="before")
+            axis.plot(t, after.predicted[:, k, axis_index], "-", label="after")
+            axis.axvline(end, color="grey", ls=":", lw=1)
+            axis.set(xlabel="t (s)", ylabel="m", title=f"{name}: {'xyz'[axis_index]}")
+            axis.legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(out / f"{name}_paths.png")
+        fig.savefig(paths[-1], dpi=90)
+        plt.close(fig)
+    ranked = [(i, r) for i, round_ in enumerate(result.rounds, 1) for r in round_.ranking]
+    if ranked:
+        fig, axis = plt.subplots(figsize=(7, 0.35 * len(ranked) + 1.2))
+        labels = [f"round {i}: {r.candidate.name}" for i, r in ranked]
+        colours = ["tab:green" if r.accepted else "tab:grey" for _, r in ranked]
+        axis.barh(labels[::-1], [max(r.explained, 0.0) for _, r in ranked][::-1], color=colours[::-1])
+        axis.axvline(result.config.min_explained, color="k", ls=":", lw=1)
+        axis.set(xlabel="explained fraction of the residual (green: accepted)", xlim=(0, 1))
+        fig.tight_layout()
+        paths.append(out / "ranking.png")
+        fig.savefig(paths[-1], dpi=90)
+        plt.close(fig)
+    return paths
