@@ -95,7 +95,8 @@ def test_ground_truth_lists_every_object_parameter_and_every_effect(synth_pair_b
     assert list(particles.stamps_ns) == read_recording(synth_pair_bag).cameras["cam0"].stamps_ns
     assert particles.of_object(2)[0].mean(axis=0) == pytest.approx([-0.02, 0.0, 0.12], abs=2e-3)
     heights = particles.of_object(2)[:, :, 2].mean(axis=1)
-    assert heights[-1] < heights[0] - 0.01  # the ball fell towards the slab
+    # the ball fell onto the slab (5 mm: it rests on it, its contact gap under a 3 cm cell)
+    assert heights[-1] < heights[0] - 0.004
 
 
 def test_undeclared_drag_appears_nowhere_in_the_bag_yet_moves_the_objects(synth_pair_bag, without_drag):

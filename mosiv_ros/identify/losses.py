@@ -126,4 +126,4 @@ def silhouette_loss(x: np.ndarray, object_index: np.ndarray, object_ids: list[in
         return 0.0, np.zeros_like(x)
     total = total / len(views)
     total.backward()
-    return float(total), xt.grad.cpu().numpy()
+    return float(total.detach()), xt.grad.cpu().numpy()
