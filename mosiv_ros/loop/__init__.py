@@ -3,6 +3,8 @@
 - ``residual``: per-object, per-frame residuals of a twin against the reconstruction, their
   time structure and their correlation with the state;
 - ``library``: the candidate effects, each with its knobs and its residual signature;
+- ``observations``: what the loop fits and scores, remade from the recording for a sensor
+  effect (a camera time offset);
 - ``closure``: the loop (``LoopClosure``) and its acceptance criterion;
 - ``report``: ``close_loop`` (``mosiv close-loop``) and its Markdown, JSON and plots.
 

@@ -4,7 +4,9 @@
 output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
 
 1. Split the frames: the first ``1 - holdout`` are fitted, the rest are held out (never fitted;
-   they decide whether an effect is accepted).
+   they decide whether an effect is accepted). The split is by stamp: a model on observations
+   remade for a sensor effect (``loop.observations``; a camera time offset) is fitted and
+   scored on the same stamps, against its own observations.
 2. Fit the declared model (``identify.run.fit_problem``) and roll its twin over every frame.
 3. Analyse the residual (``loop.residual``). The evidence vector is the centroid residual of
    every object and frame (divided by ``centroid_noise``) and the radius-of-gyration residual
@@ -13,13 +15,15 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    time (the position and initial velocity are refitted). If the rest has a mean square of
    at most ``significance`` (in units of the noise), there is nothing to explain: stop.
 4. Rank the library's candidates (``loop.library``) by how much of that rest their signature
-   explains: each knob is switched on by its probe step alone in the current twin, the change
-   of the evidence per unit of the knob is one column, and a bounded least-squares fit (knobs
-   inside their ranges, the nuisance terms free) gives the explained fraction
-   R^2 = 1 - |rest after| ^2 / |rest before|^2 and a first estimate of each knob.
+   explains: each knob is switched on by its probe step alone in the current twin (a sensor
+   effect's: in the observations), the change of the evidence per unit of the knob is one
+   column, and a bounded least-squares fit (knobs inside their ranges, the nuisance terms free)
+   gives the explained fraction R^2 = 1 - |rest after| ^2 / |rest before|^2 and a first
+   estimate of each knob.
 5. Refit the model with each of the ``top_k`` leading candidates whose R^2 reaches
    ``min_explained`` (the effect's knobs start at their first estimate, the objects' parameters
-   at the current fit), and roll out each twin.
+   afresh, as in the first fit; a sensor effect's model on its corrected observations), and
+   roll out each twin.
 6. **Acceptance**: a candidate with p knobs is accepted when its held-out centroid error E_new
    (RMS over the held-out frames and objects) satisfies
    E_new <= margin * exp(-penalty * p) * E_current
@@ -59,6 +63,7 @@ from mosiv_ros.identify.run import Identification, fit_problem, fit_settings, pr
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.loop.library import LIBRARY, Candidate, Context
+from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -111,6 +116,7 @@ class Model:
 
     effects: list[tuple[Candidate, dict[str, float]]]
     scene: Scene
+    observations: Observations
     estimates: Estimates
     identification: Identification
     prediction: Prediction
@@ -165,21 +171,29 @@ class LoopError(ValueError):
 class LoopClosure:
     """The loop on one recording's stages 1-2 output (see the module docstring).
 
-    ``progress(phase, done, total)`` is called after every fit iteration.
+    ``progress(phase, done, total)`` is called after every fit iteration. ``reobserver`` (stages
+    1-2 of the recording, remade on demand) lets the library's sensor effects correct the
+    observations; without it they are not tried.
+
+    The frames from ``stamp_ns`` of the ``window``-th given frame on are held out; a model
+    whose observations were remade (a sensor effect) is scored on the same stamps.
     """
 
     def __init__(self, frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
                  identify: IdentifyConfig, loop: LoopConfig | None = None,
                  views: Sequence[View] = (), gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
                  library: Sequence[Candidate] = LIBRARY,
-                 progress: Callable[[str, int, int], None] | None = None) -> None:
+                 progress: Callable[[str, int, int], None] | None = None,
+                 reobserver: Reobserver | None = None) -> None:
         self.loop = loop or LoopConfig()
-        self.frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
-        self.window = int(round(len(self.frames) * (1 - self.loop.holdout)))
-        if self.window < 3 or self.window >= len(self.frames):
-            raise LoopError(f"{len(self.frames)} frames with holdout {self.loop.holdout}: need at "
+        frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
+        self.given = Observations(frames, lifted)
+        self.window = int(round(len(frames) * (1 - self.loop.holdout)))
+        if self.window < 3 or self.window >= len(frames):
+            raise LoopError(f"{len(frames)} frames with holdout {self.loop.holdout}: need at "
                             "least 3 fitted and 1 held-out frame")
-        self.lifted, self.scene, self.identify = lifted, scene, identify
+        self.held_out_ns = frames[self.window].stamp_ns
+        self.scene, self.identify, self.reobserver = scene, identify, reobserver
         self.views, self.gripper_poses = list(views), list(gripper_poses)
         self.library, self.progress = list(library), progress
         self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
@@ -191,17 +205,32 @@ class LoopClosure:
         centroids = model.analysis.observed
         travel = np.nanmax(np.linalg.norm(centroids - centroids[:1], axis=-1), axis=0)
         moving = [bool(t > self.loop.moving_threshold) for t in np.nan_to_num(travel)]
-        return Context(list(model.prediction.names), moving, model.scene)
+        times = model.prediction.times
+        return Context(list(model.prediction.names), moving, model.scene, float(times[1] - times[0]),
+                       self.views, self.given, self.reobserver)
 
-    def problem(self, scene: Scene, effects: Sequence[Candidate], ctx: Context | None) -> FitProblem:
+    def fitted_frames(self, observations: Observations) -> int:
+        """How many of ``observations``' frames come before the held-out stamps."""
+        return sum(f.stamp_ns < self.held_out_ns for f in observations.frames)
+
+    def observations(self, effects: Sequence[tuple[Candidate, dict[str, float]]],
+                     ctx: Context | None) -> Observations:
+        """The given observations, or those the (last) sensor effect among ``effects`` remakes."""
+        observations = self.given
+        for candidate, values in effects:
+            observations = candidate.observe(values, ctx) or observations
+        return observations
+
+    def problem(self, scene: Scene, effects: Sequence[Candidate], ctx: Context | None,
+                observations: Observations) -> FitProblem:
         """The fit problem of ``scene`` over the fitted frames, with the effects' knobs free.
 
         The simulation domain covers every frame (held-out ones too), so that one domain serves
         the fit and the rollouts over the whole recording.
         """
-        problem = build_problem(self.frames, self.lifted, scene, self.views, self.gripper_poses,
-                                problem_options(self.identify, self.views))
-        problem.observations = problem.observations.select(slice(0, self.window))
+        problem = build_problem(observations.frames, observations.lifted, scene, self.views,
+                                self.gripper_poses, problem_options(self.identify, self.views))
+        problem.observations = problem.observations.select(slice(0, self.fitted_frames(observations)))
         problem.sim_config.device = self.identify.device
         for candidate in effects:
             free, fixed = candidate.free(ctx)
@@ -221,7 +250,8 @@ class LoopClosure:
         scene = self.scene
         for candidate, values in effects:
             scene = candidate.declare(scene, values, ctx)
-        problem = self.problem(scene, [c for c, _ in effects], ctx)
+        observations = self.observations(effects, ctx)
+        problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
         total = len(self.identify.curriculum) * self.identify.iterations
         done = [0]
 
@@ -230,59 +260,68 @@ class LoopClosure:
             if self.progress:
                 self.progress(label, done[0], total)
 
-        identification = fit_problem(problem, self.identify, progress, self.window)
-        fitted = [(c, c.read(identification.estimates, ctx)) for c, _ in effects]
+        identification = fit_problem(problem, self.identify, progress, self.fitted_frames(observations))
+        prediction = self.rollout(identification.identifier, observations)
+        fitted = [(c, c.read(identification.estimates, prediction, ctx)) for c, _ in effects]
         closed = self.scene
         for candidate, values in fitted:
             closed = candidate.declare(closed, values, ctx)
-        identifier = identification.identifier
-        prediction = self.rollout(identifier)
-        analysis = self.analyse(prediction)
+        analysis = self.analyse(prediction, observations)
         _LOG.info("%s: held-out centroid error %.2f mm (fitted frames %.2f mm), %s", label,
                   analysis.errors()["held_out"] * 1e3, analysis.errors()["fitted"] * 1e3,
                   ", ".join(f"{k}={v:.4g}" for _, values in fitted for k, v in values.items()) or "declared model")
-        return Model(fitted, closed, _material_estimates(identification.estimates), identification,
-                     prediction, analysis, time.perf_counter() - tick)
+        return Model(fitted, closed, observations, _material_estimates(identification.estimates),
+                     identification, prediction, analysis, time.perf_counter() - tick)
 
-    def rollout(self, identifier: Identifier) -> Prediction:
-        """The identifier's simulation, as it stands, over every frame of the recording."""
-        n = len(self.frames) - 1
+    def rollout(self, identifier: Identifier, observations: Observations) -> Prediction:
+        """The identifier's simulation, as it stands, over every observed frame."""
+        frames = observations.frames
+        n = len(frames) - 1
         dt = identifier.problem.observations.frame_dt
         positions = identifier.sim.rollout(n)[:, 0].astype(np.float64)
         objects = identifier.problem.objects
-        return Prediction(self.frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
+        return Prediction(frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
                           identifier.index, [o.id for o in objects], [o.name for o in objects])
 
     def probe(self, model: Model, scene: Scene, ctx: Context) -> Prediction:
         """``model`` with ``scene``'s declaration instead of its own, rolled out unfitted."""
-        problem = self.problem(scene, [], ctx)
+        problem = self.problem(scene, [], ctx, model.observations)
         _start_at(problem, model.estimates)
         identifier = Identifier(problem, fit_settings(self.identify))
         fitted = model.identification.identifier
         identifier.offsets[:] = fitted.offsets
         identifier._apply(identifier._pack(), model.identification.result.velocity)
-        return self.rollout(identifier)
+        return self.rollout(identifier, model.observations)
 
-    def analyse(self, prediction: Prediction) -> ResidualAnalysis:
+    def analyse(self, prediction: Prediction, observations: Observations) -> ResidualAnalysis:
         views = self.views if self.loop.silhouettes else ()
-        return analyse(self.frames, prediction, self.window, self.floor, views,
-                       self.loop.contact_tolerance)
+        return analyse(observations.frames, prediction, self.fitted_frames(observations), self.floor,
+                       views, self.loop.contact_tolerance)
 
     # --- evidence and ranking ----------------------------------------------------------------
 
-    def evidence(self, prediction: Prediction) -> np.ndarray:
-        """The evidence of a prediction: its centroid and shape residuals in noise units."""
-        analysis = analyse(self.frames, prediction, self.window, self.floor, (),
-                           self.loop.contact_tolerance)
+    def evidence(self, prediction: Prediction, frames: Sequence[ObservedFrame]) -> np.ndarray:
+        """The evidence of a prediction: its centroid and shape residuals in noise units.
+
+        On the prediction's frames; where ``frames`` has no frame at a stamp, NaN.
+        """
+        by_stamp = {f.stamp_ns: f for f in frames}
+        tolerance = int(0.25 * (prediction.times[1] - prediction.times[0]) * 1e9)
+        aligned = []
+        for stamp in prediction.stamps_ns():
+            near = [s for s in by_stamp if abs(s - stamp) <= tolerance]
+            aligned.append(by_stamp[near[0]] if near else ObservedFrame(stamp, {}))
+        analysis = analyse(aligned, prediction, 0, self.floor, (), self.loop.contact_tolerance)
         return np.concatenate([(analysis.centroid[1:] / self.loop.centroid_noise).ravel(),
                                (analysis.shape[1:] / self.loop.shape_noise).ravel()])
 
-    def nuisance(self, n_objects: int) -> np.ndarray:
+    def nuisance(self, n_frames: int, n_objects: int) -> np.ndarray:
         """Columns a refit absorbs: per object and axis a constant and a linear term.
 
-        Those are for the centroid block; the shape block gets a constant per object.
+        Those are for the centroid block (frames after the first); the shape block gets a
+        constant per object.
         """
-        n = len(self.frames) - 1
+        n = n_frames - 1
         t = np.arange(1, n + 1, dtype=np.float64) / n
         columns = []
         size = n * n_objects * 3 + n * n_objects
@@ -299,8 +338,8 @@ class LoopClosure:
 
     def rest(self, model: Model) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(evidence, nuisance columns, rows used) of a model."""
-        r = self.evidence(model.prediction)
-        N = self.nuisance(len(model.prediction.object_ids))
+        r = self.evidence(model.prediction, model.observations.frames)
+        N = self.nuisance(len(model.prediction.times), len(model.prediction.object_ids))
         rows = np.isfinite(r)
         return r, N, rows
 
@@ -320,12 +359,15 @@ class LoopClosure:
         for knob in knobs:
             values = {k.label: k.neutral for k in knobs}
             values[knob.label] = knob.neutral + knob.probe
-            try:
-                probe = self.probe(model, candidate.declare(model.scene, values, ctx), ctx)
+            observed = candidate.observe(values, ctx)
+            try:  # a physical effect changes the prediction, a sensor effect the observations
+                probe = (self.probe(model, candidate.declare(model.scene, values, ctx), ctx)
+                         if observed is None else model.prediction)
             except SimulationError as error:
                 return Ranked(candidate, 0.0, {}, note=f"probe diverged: {error}")
+            frames = (observed or model.observations).frames
             # the knob moves the prediction by column * value, the residual by minus that
-            columns.append((self.evidence(model.prediction) - self.evidence(probe)) / knob.probe)
+            columns.append((r - self.evidence(probe, frames)) / knob.probe)
         J = np.stack(columns, axis=1)
         rows = rows & np.all(np.isfinite(J), axis=1)
         A = np.concatenate([J, N], axis=1)[rows]

@@ -8,14 +8,20 @@ A ``Candidate`` is one effect the loop can add to a scene's model. It declares
   simulator builds its effects and floor from the declaration (``identify.problem``,
   ``predict.twin``), so a candidate is only ever a change of declaration;
 - ``free(ctx)``: the simulator parameters a refit fits (and, per object, those it keeps fixed);
-- ``read(estimates, ctx)``: the fitted knob values from a refit's estimates.
+- ``read(estimates, prediction, ctx)``: the fitted knob values from a refit's estimates (and,
+  for an effect fitted on the observation side, from its rolled-out twin);
+- ``observe(values, ctx)``: for a sensor effect, the observations (stages 1-2) corrected for
+  it (``loop.observations``); None for a physical effect, which leaves them as they are.
 
-Its residual signature is what the effect does to the twin's observables: the loop switches
-each knob on by its ``probe`` step alone in the current twin, rolls it out, and takes the change
-of the observed features (centroid paths, shape) per unit of the knob. The effect explains the
+Its residual signature is what the effect does to the residual: the loop switches each knob on
+by its ``probe`` step alone, in the current twin for a physical effect (rolled out) or in the
+observations for a sensor effect, and takes the change of the residual features (centroid
+paths, shape) per unit of the knob. The effect explains the
 residual to the degree that a combination of those columns, with the knobs inside their ranges,
 reproduces it (``closure``). Adding an effect means adding a ``Candidate`` here (and, for a new
-physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes.
+physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes. A sensor
+effect's ``declare`` adds a declaration the simulator ignores (``identify.problem``'s
+``SENSOR_EFFECTS``); its ``observe`` does the work.
 
 The library (``LIBRARY``):
 
@@ -32,7 +38,11 @@ The library (``LIBRARY``):
   direction while on the floor (only when the declaration gives the friction; otherwise it is
   fitted anyway);
 - ``damping``: Kelvin-Voigt velocity damping per moving object (Pa*s): deformation (bounces,
-  wobble) dies out faster; it shows in the shape and in the rebound, not in free flight.
+  wobble) dies out faster; it shows in the shape and in the rebound, not in free flight;
+- ``camera_time_offset``: a sensor effect, one offset per camera (s, relative to the median
+  camera): a camera's frames show the scene at t + offset under stamp t, so its silhouettes
+  lead or lag the others' and the carved volume shrinks and shifts along the motion. Tried
+  only with the recording at hand and at least three cameras.
 
 What it is not for: the loop itself (``closure``) or the physics (``mosiv_ros.sim``).
 """
@@ -44,17 +54,31 @@ import math
 from dataclasses import dataclass
 from typing import ClassVar
 
+import numpy as np
+
 from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.observations import View
 from mosiv_ros.io.scene import DeclaredEffect, Scene
+from mosiv_ros.loop.observations import Observations, Reobserver
+from mosiv_ros.loop.residual import camera_time_offset
+from mosiv_ros.predict.twin import Prediction
 
 
 @dataclass
 class Context:
-    """What a candidate needs to know of the model: object names, which move, the scene."""
+    """What a candidate needs to know of the model and the data.
+
+    Object names, which move, the scene; the frame period, the cameras, the observations the
+    loop was given and, when the recording is at hand, a ``Reobserver`` to remake them.
+    """
 
     names: list[str]
     moving: list[bool]
     scene: Scene
+    frame_dt: float
+    views: list[View]
+    given: Observations
+    reobserver: Reobserver | None = None
 
     @property
     def moving_names(self) -> list[str]:
@@ -100,8 +124,12 @@ class Candidate:
     def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
         raise NotImplementedError
 
-    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         raise NotImplementedError
+
+    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
+        """The observations corrected for a sensor effect at ``values``; None: unchanged."""
+        return None
 
 
 def _with_effect(scene: Scene, effect: DeclaredEffect) -> Scene:
@@ -140,7 +168,7 @@ class PerObjectEffect(Candidate):
         full = f"{self.name}.{self.param}"
         return [full], {n: {full} for n in ctx.static_names}
 
-    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         full = f"{self.name}.{self.param}"
         return {self.label(o.name): o.params[full] for o in estimates.objects if full in o.params}
 
@@ -186,7 +214,7 @@ class WindCandidate(Candidate):
     def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
         return list(self.LABELS), {}
 
-    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return {label: estimates.scene[label] for label in self.LABELS}
 
 
@@ -209,7 +237,7 @@ class FloorTiltCandidate(Candidate):
     def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
         return list(self.LABELS), {}
 
-    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return {label: estimates.scene[label] for label in self.LABELS}
 
 
@@ -238,10 +266,72 @@ class FloorFrictionCandidate(Candidate):
     def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
         return [self.LABEL], {}
 
-    def read(self, estimates: Estimates, ctx: Context) -> dict[str, float]:
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return {self.LABEL: estimates.scene[self.LABEL]}
 
 
+class CameraTimeOffsetCandidate(Candidate):
+    """A sensor effect: one camera's frames show the scene at t + offset under stamp t.
+
+    One knob per camera (s); only differences between cameras are observable (a common offset
+    is a shift of the time origin, which the fit absorbs), so values are taken relative to the
+    median camera. Its signature is that of the observations, not of the motion: the probe
+    remakes stages 1-2 with the camera's frames taken one set earlier (``Reobserver``). The
+    refit fits the motion on observations corrected to the nearest whole frame; the offset
+    itself is then fitted to a fiftieth of a frame on each camera's silhouettes against the
+    refitted twin (``residual.camera_time_offset``). Needs the recording (a ``Reobserver``) and
+    at least ``MIN_CAMERAS`` cameras (with two, an offset of one is an offset of the other).
+    """
+
+    name = "camera_time_offset"
+    doc = "a camera's frames show the scene at t + offset (s) under stamp t (badly synchronised)"
+    signature = ("one camera's silhouettes lead or lag the others': the carved volume shrinks and "
+                 "its centroid shifts along the motion")
+    MIN_CAMERAS = 3
+    MAX_FRAMES = 1
+    """Largest offset tried, in frames (the fit of the offset searches half a frame beyond)."""
+
+    def label(self, camera: str) -> str:
+        return f"{self.name}[{camera}]"
+
+    def applicable(self, ctx: Context) -> bool:
+        return (super().applicable(ctx) and ctx.reobserver is not None
+                and len(ctx.views) >= self.MIN_CAMERAS)
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        span = self.MAX_FRAMES * ctx.frame_dt
+        return [Knob(self.label(v.name), 0.0, ctx.frame_dt, -span, span) for v in ctx.views]
+
+    def relative(self, values: dict[str, float], ctx: Context) -> dict[str, float]:
+        """Each camera's offset minus the median camera's."""
+        offsets = {v.name: float(values.get(self.label(v.name), 0.0)) for v in ctx.views}
+        median = float(np.median(list(offsets.values())))
+        return {camera: offset - median for camera, offset in offsets.items()}
+
+    def shifts(self, values: dict[str, float], ctx: Context) -> dict[str, int]:
+        """Whole frames by which each camera leads the median camera."""
+        return {c: int(round(o / ctx.frame_dt)) for c, o in self.relative(values, ctx).items()}
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        offsets = {c: o for c, o in self.relative(values, ctx).items() if o != 0.0}
+        return _with_effect(scene, DeclaredEffect(self.name, {"offset": offsets}))
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return [], {}
+
+    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
+        shifts = self.shifts(values, ctx)
+        return ctx.reobserver.observe(shifts) if any(shifts.values()) else None
+
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
+        span = (self.MAX_FRAMES + 0.5) * ctx.frame_dt
+        fitted = {self.label(v.name): camera_time_offset(prediction, ctx.given.frames, v, span,
+                                                         ctx.frame_dt / 50)
+                  for v in ctx.views}
+        return {self.label(c): o for c, o in self.relative(fitted, ctx).items()}
+
+
 LIBRARY: tuple[Candidate, ...] = (QuadraticDragCandidate(), LinearDragCandidate(), WindCandidate(),
-                                  FloorTiltCandidate(), FloorFrictionCandidate(), DampingCandidate())
+                                  FloorTiltCandidate(), FloorFrictionCandidate(), DampingCandidate(),
+                                  CameraTimeOffsetCandidate())
 """Every candidate the loop tries, in this order when they explain equally well."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
+from mosiv_ros.loop.observations import Reobserver
 from mosiv_ros.pipeline import Prepared, RunConfig, prepare
 from mosiv_ros.report import jsonable
 
@@ -49,7 +51,8 @@ def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None
     prepared = prepare(bag, config, progress)
     closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene,
                           config.identify, loop, views_of(prepared.recording),
-                          prepared.recording.gripper_poses, progress=progress)
+                          prepared.recording.gripper_poses, progress=progress,
+                          reobserver=Reobserver(prepared.recording, config))
     result = closure.run()
     return write_loop_report(out, result, prepared, config.render)
 
@@ -114,8 +117,14 @@ def _model(model: Model, prepared: Prepared | None, truth, truth_particles, rend
              "centroid_error": model.analysis.errors(), "fit_seconds": model.seconds,
              "estimates": model.estimates.to_dict(), "residual": model.analysis.to_dict()}
     if prepared is not None:
-        spacing = prepared.lifted.lattice_volume ** (1 / 3)
-        scores = score_frames(model.prediction, prepared.frames, prepared.recording,
+        observations = model.observations
+        spacing = observations.lifted.lattice_volume ** (1 / 3)
+        if truth_particles is not None:  # from the model's first frame on
+            first = int(np.searchsorted(truth_particles.stamps_ns, observations.frames[0].stamp_ns))
+            truth_particles = replace(truth_particles, positions=truth_particles.positions[first:],
+                                      stamps_ns=truth_particles.stamps_ns[first:],
+                                      times=truth_particles.times[first:])
+        scores = score_frames(model.prediction, observations.frames, prepared.recording,
                               model.analysis.fitted, spacing, truth_particles, render)
         entry["metrics"] = summarise(scores)
     if truth is not None:
@@ -199,12 +208,14 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
     paths = []
     before, after = result.before.analysis, result.after.analysis
     t = before.times
+    # a model on remade observations (a sensor effect) may start a frame later
+    t_after = after.times + (result.after.prediction.start_ns - result.before.prediction.start_ns) * 1e-9
     end = t[result.window - 1]
     for k, name in enumerate(before.names):
         fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
-        for analysis, style, label in ((before, "--", "before"), (after, "-", "after")):
-            axes[0].plot(t, np.linalg.norm(analysis.centroid[:, k], axis=-1) * 1e3, style, label=label)
-            axes[1].plot(t, analysis.shape[:, k] * 1e3, style, label=label)
+        for analysis, times, style, label in ((before, t, "--", "before"), (after, t_after, "-", "after")):
+            axes[0].plot(times, np.linalg.norm(analysis.centroid[:, k], axis=-1) * 1e3, style, label=label)
+            axes[1].plot(times, analysis.shape[:, k] * 1e3, style, label=label)
         axes[0].set(xlabel="t (s)", ylabel="mm", title=f"{name}: centroid residual")
         axes[1].set(xlabel="t (s)", ylabel="mm", title=f"{name}: radius of gyration residual")
         for axis in axes:
@@ -218,7 +229,7 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
         for axis_index, axis in enumerate(axes):
             axis.plot(t, before.observed[:, k, axis_index], "k.", label="observed")
             axis.plot(t, before.predicted[:, k, axis_index], "--", label="before")
-            axis.plot(t, after.predicted[:, k, axis_index], "-", label="after")
+            axis.plot(t_after, after.predicted[:, k, axis_index], "-", label="after")
             axis.axvline(end, color="grey", ls=":", lw=1)
             axis.set(xlabel="t (s)", ylabel="m", title=f"{name}: {'xyz'[axis_index]}")
             axis.legend(fontsize=7)

@@ -19,6 +19,9 @@ length over time, m/s), its oscillation (sign changes of the detrended residual 
 direction, per frame) and the jump at a contact (largest frame-to-frame change of the residual
 at a frame where the object touches or leaves the floor, over the median change elsewhere).
 
+A camera's time offset (``camera_time_offset``): the shift of the prediction's clock that best
+matches that camera's silhouettes (its mask stamped t shows the scene at t + offset).
+
 Correlation with the state: Pearson coefficients, over the frames, between the length of the
 residual acceleration (second difference of the centroid residual) and the observed speed, speed
 squared, height of the object's lowest point above the floor and floor contact; and per camera
@@ -35,6 +38,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from mosiv_ros.evaluate.metrics import chamfer_distance
 from mosiv_ros.identify.losses import silhouette_loss
@@ -176,6 +180,41 @@ def analyse(frames: Sequence[ObservedFrame], prediction: Prediction, fitted: int
                                                    contact[:, k], {c: s[:, k] for c, s in silhouette.items()},
                                                    dt))
     return analysis
+
+
+def camera_time_offset(prediction: Prediction, frames: Sequence[ObservedFrame], view: View,
+                       span: float, tolerance: float, device: str = "cpu") -> float:
+    """Time offset (s) of ``view``'s camera against ``prediction``'s clock, within +- ``span``.
+
+    The offset that minimises the summed silhouette loss of the prediction at t + offset
+    (positions interpolated linearly between its frames) against the camera's mask stamped t,
+    over the frames where t +- span lies inside the prediction (bounded Brent search to
+    ``tolerance``; the loss is unimodal while the shifted silhouettes overlap the observed
+    ones). NaN where no frame qualifies.
+    """
+    times = prediction.times
+    dt = float(times[1] - times[0])
+    ids = list(prediction.object_ids)
+    usable = []
+    for frame in frames:
+        t = (frame.stamp_ns - prediction.start_ns) * 1e-9
+        if view.name in frame.masks and times[0] <= t - span and t + span <= times[-1]:
+            usable.append((t, frame.masks[view.name]))
+    if not usable:
+        return math.nan
+
+    def loss(offset: float) -> float:
+        total = 0.0
+        for t, mask in usable:
+            at = np.clip((t + offset - times[0]) / dt, 0, len(times) - 1)
+            i = min(int(at), len(times) - 2)
+            x = (1 - (at - i)) * prediction.positions[i] + (at - i) * prediction.positions[i + 1]
+            total += silhouette_loss(x, prediction.object_index, ids, [view], {view.name: mask},
+                                     SPLAT_RADIUS, True, device)[0]
+        return total
+
+    return float(minimize_scalar(loss, bounds=(-span, span), method="bounded",
+                                 options={"xatol": tolerance}).x)
 
 
 def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:
