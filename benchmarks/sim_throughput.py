@@ -119,7 +119,9 @@ def _child(n: int, k: int, frames: int, device: str) -> dict:
     out = subprocess.run([sys.executable, __file__, "--device", device, "--one", str(n), str(k),
                           str(frames)], capture_output=True, text=True, check=False)
     if out.returncode != 0:
-        return {"particles": n, "objects": k, "frames": frames, "error": out.stderr[-2000:]}
+        # a negative code is the signal that ended it (-9: killed, typically out of memory)
+        return {"particles": n, "objects": k, "frames": frames, "exit_code": out.returncode,
+                "error": out.stderr[-2000:]}
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
