@@ -25,8 +25,10 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from mosiv_ros.config import describe
+from mosiv_ros.config import LiftingConfig, describe
 from mosiv_ros.io.errors import MosivIOError
+from mosiv_ros.io.messages import pointcloud_from_msg
+from mosiv_ros.lifting.lift import LiftedParticles
 
 #: Results a late subscriber must still get (DESIGN.md: reliable + transient_local, depth 1).
 LATCHED_QOS = QoSProfile(
@@ -151,6 +153,13 @@ def guarded(
         handle(value)
 
     return callback
+
+
+def lifted_from_msg(msg: Any) -> LiftedParticles:
+    """A ``/mosiv/particles`` cloud as lifted particles (ValueError if it lacks their fields)."""
+    lifting = LiftingConfig()
+    return LiftedParticles.from_cloud(pointcloud_from_msg(msg), lifting.boundary_beta,
+                                      lifting.boundary_eps)
 
 
 def log_cloud(node: Node, topic: str, cloud: Any) -> None:

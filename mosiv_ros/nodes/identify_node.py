@@ -26,15 +26,21 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from mosiv_ros.config import IdentifyConfig, LiftingConfig
+from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.run import identify_objects
 from mosiv_ros.io.messages import pointcloud_from_msg
-from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.loop.closure import LoopClosure, LoopError
 from mosiv_ros.loop.report import write_loop_report
-from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
+from mosiv_ros.nodes.common import (
+    LATCHED_QOS,
+    STREAM_QOS,
+    declare_config,
+    guarded,
+    lifted_from_msg,
+    main_for,
+)
 from mosiv_ros.nodes.outputs import diagnostics_msg
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
@@ -59,32 +65,23 @@ class IdentifyNode(Node):
         self.worker: threading.Thread | None = None
         self.create_subscription(
             PointCloud2, "/mosiv/observed_objects",
-            guarded(self, "/mosiv/observed_objects", pointcloud_from_msg, self._on_observed), STREAM_QOS)
+            guarded(self, "/mosiv/observed_objects",
+                    lambda msg: ObservedFrame.from_cloud(pointcloud_from_msg(msg)), self._on_observed), STREAM_QOS)
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
-            guarded(self, "/mosiv/particles", pointcloud_from_msg, self._on_particles), LATCHED_QOS)
+            guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
         self.create_timer(0.5, self._maybe_start)
         if self.config.silhouette_weight > 0:
             self.get_logger().info("the topic graph carries no silhouettes: fitting the 3D loss")
 
-    def _on_observed(self, cloud: PointCloud) -> None:
+    def _on_observed(self, frame: ObservedFrame) -> None:
         if self.worker is not None:
-            return
-        try:
-            frame = ObservedFrame.from_cloud(cloud)
-        except ValueError as error:
-            self.get_logger().error(f"/mosiv/observed_objects: dropped malformed cloud: {error}")
             return
         self.frames[frame.stamp_ns] = frame
         self.last_frame = time.monotonic()
 
-    def _on_particles(self, cloud: PointCloud) -> None:
-        lifting = LiftingConfig()
-        try:
-            self.particles = LiftedParticles.from_cloud(cloud, lifting.boundary_beta, lifting.boundary_eps)
-        except ValueError as error:
-            self.get_logger().error(f"/mosiv/particles: dropped malformed cloud: {error}")
-            return
+    def _on_particles(self, particles: LiftedParticles) -> None:
+        self.particles = particles
         self.get_logger().info(f"/mosiv/particles: {self.particles.summary()}")
 
     def _window(self) -> list[ObservedFrame]:

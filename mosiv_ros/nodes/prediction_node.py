@@ -23,13 +23,12 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from mosiv_ros.config import LiftingConfig, PredictionConfig
+from mosiv_ros.config import PredictionConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates
-from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
-from mosiv_ros.io.recording import PointCloud
+from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.nodes.common import LATCHED_QOS, declare_config, guarded, main_for
+from mosiv_ros.nodes.common import LATCHED_QOS, declare_config, guarded, lifted_from_msg, main_for
 from mosiv_ros.nodes.outputs import markers_msg, path_msg, statuses_of
 from mosiv_ros.predict.twin import Twin
 
@@ -53,7 +52,7 @@ class PredictionNode(Node):
         self.lock = threading.Lock()
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
-            guarded(self, "/mosiv/particles", pointcloud_from_msg, self._on_particles), LATCHED_QOS)
+            guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
         self.create_subscription(
             DiagnosticArray, "/mosiv/material_estimates",
             guarded(self, "/mosiv/material_estimates",
@@ -62,13 +61,8 @@ class PredictionNode(Node):
         if self.config.estimates_file:
             self._on_estimates(Estimates.read(self.config.estimates_file))
 
-    def _on_particles(self, cloud: PointCloud) -> None:
-        lifting = LiftingConfig()
-        try:
-            self.particles = LiftedParticles.from_cloud(cloud, lifting.boundary_beta, lifting.boundary_eps)
-        except ValueError as error:
-            self.get_logger().error(f"/mosiv/particles: dropped malformed cloud: {error}")
-            return
+    def _on_particles(self, particles: LiftedParticles) -> None:
+        self.particles = particles
         self._predict()
 
     def _on_estimates(self, estimates: Estimates) -> None:
