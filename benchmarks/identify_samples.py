@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from mosiv_ros.cli import load_params_file
+from mosiv_ros.cli import run_config
 from mosiv_ros.pipeline import RunConfig, run
 from mosiv_ros.report import jsonable
 
@@ -45,10 +45,7 @@ def main() -> int:
     parser.add_argument("--ablation", action="store_true", help="also fit with scene-level losses")
     parser.add_argument("--out", type=Path, default=Path("out/identify_samples.json"))
     args = parser.parse_args()
-    configs = load_params_file(args.params_file)
-    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
-                       configs["identify_node"], configs["prediction_node"])
-    config.identify.device = config.prediction.device = args.device
+    config = run_config(args.params_file, args.device)
     results = []
     for bag in args.bags:
         results.append({"loss": "per_object", **one(bag, config, args.out.parent / bag.name)})

@@ -148,18 +148,26 @@ def load_params_file(path: Path | None) -> dict[str, object]:
             for node, config in STAGE_CONFIGS.items()}
 
 
+
+def run_config(params_file: Path | None, device: str | None = None, **options: object):
+    """The pipeline's ``RunConfig`` from a params file, ``device`` (if given) for every stage."""
+    from mosiv_ros.pipeline import RunConfig
+
+    configs = load_params_file(params_file)
+    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
+                       configs["identify_node"], configs["prediction_node"], **options)
+    if device:
+        config.identify.device = config.prediction.device = device
+    return config
+
 def cmd_run(args: argparse.Namespace) -> int:
     import time
 
-    from mosiv_ros.pipeline import RunConfig, run
+    from mosiv_ros.pipeline import run
     from mosiv_ros.sim.errors import SimulationError
 
-    configs = load_params_file(args.params_file)
-    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
-                       configs["identify_node"], configs["prediction_node"], holdout=args.holdout,
-                       render=not args.no_render)
-    if args.device:
-        config.identify.device = config.prediction.device = args.device
+    config = run_config(args.params_file, args.device, holdout=args.holdout,
+                        render=not args.no_render)
     start = time.perf_counter()
     progress, close = _progress_bars()
     try:
@@ -179,15 +187,10 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
 
     from mosiv_ros.loop.closure import LoopConfig
     from mosiv_ros.loop.report import close_loop
-    from mosiv_ros.pipeline import RunConfig
     from mosiv_ros.sim.errors import SimulationError
 
-    configs = load_params_file(args.params_file)
-    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
-                       configs["identify_node"], configs["prediction_node"], holdout=args.holdout,
-                       render=not args.no_render)
-    if args.device:
-        config.identify.device = config.prediction.device = args.device
+    config = run_config(args.params_file, args.device, holdout=args.holdout,
+                        render=not args.no_render)
     loop = LoopConfig(holdout=args.holdout, top_k=args.top_k, max_rounds=args.max_rounds)
     start = time.perf_counter()
     progress, close = _progress_bars()
@@ -216,7 +219,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     from mosiv_ros.graph import Graph, NodeSpec
     from mosiv_ros.identify.estimates import Estimates
     from mosiv_ros.io.bag import list_topics
-    from mosiv_ros.pipeline import RunConfig, evaluate, prepare
+    from mosiv_ros.pipeline import evaluate, prepare
 
     start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
@@ -246,9 +249,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
                       if "frame set" in line]
     print(f"mosiv graph: {bag} replayed (exit code {code}); reconstruction_node received "
           f"{len(frame_sets)} complete frame sets; identify_node fitted the first {window}")
-    configs = load_params_file(args.params_file)
-    config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
-                       configs["identify_node"], configs["prediction_node"])
+    config = run_config(args.params_file)
     estimates = Estimates.read(estimates_file)
     result = evaluate(prepare(bag, config), estimates, estimates.frames, out, config)
     _print_summary(result)
