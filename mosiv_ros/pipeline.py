@@ -33,6 +33,7 @@ from mosiv_ros.predict.twin import Twin
 from mosiv_ros.recon.reconstruct import ObservedFrame, iter_reconstruct
 from mosiv_ros.report import write_report
 from mosiv_ros.sim.errors import SimulationError
+from mosiv_ros.synth.ground_truth import ground_truth_if_any
 
 _LOG = logging.getLogger(__name__)
 
@@ -141,7 +142,7 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | P
     seconds = (len(prepared.frames) - 1) * estimates.frame_dt + config.prediction.horizon
     prediction = twin.predict(seconds)
     timing["predict_s"] = time.perf_counter() - tick
-    truth, truth_particles = _ground_truth(prepared.bag)
+    truth, truth_particles = ground_truth_if_any(prepared.bag)
     tick = time.perf_counter()
     scores = score_frames(prediction, prepared.frames, prepared.recording, window,
                           prepared.lifted.lattice_volume ** (1 / 3), truth_particles, config.render)
@@ -157,12 +158,3 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | P
         report["truth_effects"] = truth.get("effects", [])
     write_report(out, report, prediction, prepared.frames, window)
     return RunResult(estimates, report, out)
-
-
-def _ground_truth(bag: str | Path):
-    from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
-
-    try:
-        return read_ground_truth(bag), read_ground_truth_particles(bag)
-    except BagError:
-        return None, None

@@ -31,13 +31,13 @@ import numpy as np
 
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
 from mosiv_ros.loop.observations import Reobserver
 from mosiv_ros.pipeline import Prepared, RunConfig, prepare
 from mosiv_ros.report import jsonable
+from mosiv_ros.synth.ground_truth import ground_truth_if_any
 
 _LOG = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | 
     """Write the files of the module docstring; ``prepared`` adds CD/EMD and truth scores."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    truth, truth_particles = _ground_truth(prepared)
+    truth, truth_particles = ground_truth_if_any(prepared.bag) if prepared else (None, None)
     report = {
         "verdict": result.verdict, "frames": len(result.before.analysis.times),
         "fitted_frames": result.window, "loop_seconds": result.seconds,
@@ -83,17 +83,6 @@ def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | 
     (out / "close_loop.json").write_text(json.dumps(jsonable(report), indent=1))
     (out / "close_loop.md").write_text(_markdown(report, [p.name for p in plots]))
     return report
-
-
-def _ground_truth(prepared: Prepared | None):
-    if prepared is None:
-        return None, None
-    from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
-
-    try:
-        return read_ground_truth(prepared.bag), read_ground_truth_particles(prepared.bag)
-    except BagError:
-        return None, None
 
 
 def _effect(candidate, values: dict[str, float]) -> dict:
@@ -192,7 +181,7 @@ def _markdown(report: dict, plots: list[str]) -> str:
 
 
 def _mm(value) -> str:
-    return "" if value is None or not np.isfinite(value) else f"{value * 1e3:.2f}"
+    return _num(value, 1e3)
 
 
 def _num(value, scale: float = 1.0) -> str:

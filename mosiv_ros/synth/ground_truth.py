@@ -94,3 +94,11 @@ def read_ground_truth_particles(bag: str | Path) -> GroundTruthParticles:
                                            ("positions", "object_id", "volume", "stamps_ns", "times")})
     except (OSError, KeyError, ValueError) as exc:
         raise BagError(bag, None, f"unreadable {PARTICLES_FILE}: {exc}") from None
+
+
+def ground_truth_if_any(bag: str | Path) -> tuple[dict[str, Any] | None, GroundTruthParticles | None]:
+    """(ground_truth.yaml, its particles) of a synthetic recording; (None, None) for any other."""
+    try:
+        return read_ground_truth(bag), read_ground_truth_particles(bag)
+    except BagError:
+        return None, None
