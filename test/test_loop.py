@@ -207,7 +207,9 @@ def test_identify_node_with_close_loop_closes_the_loop_on_its_topics(tmp_path, f
     specs = [NodeSpec("reconstruction_node", {"scene": bag}), NodeSpec("lifting_node", {"scene": bag}),
              NodeSpec("identify_node", {"scene": bag, "close_loop": True, "close_loop_dir": str(out),
                                         "output_yaml": str(tmp_path / "estimates.yaml")}),
-             NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1})]
+             # half real time: camera topics are best effort, and on a loaded 2-core machine
+             # reconstruction_node missed a frame set at 30 fps (the fit then refuses the gap)
+             NodeSpec("bag_replay_node", {"bag": bag, "rate": 0.5, "wait_for_subscribers": 1})]
     with Graph(specs, params_file=_params_file(tmp_path, fast_params), sink=None) as graph:
         line = graph.nodes["identify_node"].wait_for_line("loop closure: ", 300)
         while "effects added" not in line:  # progress lines come first
