@@ -28,7 +28,7 @@ def main() -> int:
     traj = sim.rollout(1, grad=True)
     sim.backward(np.zeros_like(traj))  # allocates the tape buffers, compiles the adjoints
     n_sub, dt = sim._record["n_sub"], sim._record["dt"]
-    states, grids = sim._tape_buffers_for(n_sub)
+    states, grids, _, _ = sim._tape_buffers_for(n_sub)
     states[0].copy_from(sim._record["checkpoints"][0])
     tape = wp.Tape()
     with tape:

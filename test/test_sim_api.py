@@ -5,11 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from sim_scenes import falling_ball, scene
+from sim_scenes import DEVICE, falling_ball, scene
 
 from mosiv_ros.identify.losses import chamfer
 from mosiv_ros.sim import (
+    Collider,
     Effect,
+    Ground,
     ObjectModel,
     ParameterError,
     ParamSpec,
@@ -173,3 +175,31 @@ def test_one_scene_in_domains_of_different_margins_moves_the_same():
         tracks.append(sim.rollout(8)[:, 0])
     for other in tracks[1:]:
         assert np.abs(other - tracks[0]).max() < 1e-4
+
+
+@pytest.mark.skipif(not DEVICE.startswith("cuda"),
+                    reason="CUDA graphs need a GPU: run with MOSIV_TEST_DEVICE=cuda:0")
+def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches():
+    # a finger pushing a block: the collider's poses change every frame, so a graph that kept
+    # the poses of the frame it was captured in would push from the wrong place
+    dx, floor = 0.02, 0.1
+    finger = Collider("sphere", (0.04,), np.array([0.0, 0.5]),
+                      np.array([[0.1, 0.2, floor + 0.03], [0.6, 0.2, floor + 0.03]]), friction=0.5)
+    results = {}
+    for graphs in (False, True):
+        sim = scene([box((0.25, 0.2, floor + 0.03), (0.03, 0.03, 0.03), dx / 2)],
+                    [ObjectModel("block", "elastic", {"E": 1e5})], dx=dx, lo=(0, 0, 0),
+                    hi=(0.8, 0.4, 0.3), colliders=[finger], ground=Ground(height=floor),
+                    cuda_graphs=graphs)
+        for _ in range(2):  # graphs: captured on each key's second run, replayed after
+            traj = sim.rollout(8, grad=True)
+            dL = np.zeros_like(traj, dtype=np.float64)
+            dL[1:, 0, :, 0] = 1.0  # d(sum of x over frames)
+            grads = sim.backward(dL)
+        assert bool(sim._graphs) == graphs
+        results[graphs] = traj, grads.params["E"][0, 0], grads.v0
+    (traj_eager, dE_eager, dv_eager), (traj_graph, dE_graph, dv_graph) = results[False], results[True]
+    assert traj_eager[-1, 0, :, 0].mean() > 0.27  # the finger reached and pushed the block
+    assert np.abs(traj_graph - traj_eager).max() < 1e-5
+    assert dE_graph == pytest.approx(dE_eager, rel=1e-3)
+    assert np.abs(dv_graph - dv_eager).max() < 1e-3 * np.abs(dv_eager).max()

@@ -8,6 +8,12 @@ parameter), dL/d(initial velocities) and dL/d(particle volumes). The backward pa
 one frame's substeps at a time on a ``wp.Tape`` from that frame's checkpoint, so memory grows
 with the number of frames, not substeps.
 
+On a CUDA device a frame's substeps are hundreds of small kernel launches, and at the particle
+counts of an identification (thousands) launching them from Python costs more than running
+them. So each frame (forward) and each frame's recomputation and adjoint (backward) is captured
+once as a CUDA graph, on its second run with the same substeps, and replayed from then on; the
+arrays a graph touches live as long as the simulator (``SimConfig.cuda_graphs`` turns this off).
+
 Time step: ``n`` equal substeps per frame, the fewest that keep dt below the CFL bound
 ``cfl * dx / (c + max_speed)`` (c the largest elastic or acoustic wave speed over objects and
 batches) and every effect's own bound. A frame whose particles turn non-finite, move faster
@@ -21,8 +27,9 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -91,7 +98,9 @@ class SimConfig:
 
     The grid covers the box ``lo``..``hi`` (metres, world frame) with spacing ``dx``; particles
     must start at least ``WALL_CELLS + 1`` cells inside it. ``max_speed`` is the material speed
-    (m/s) the CFL bound allows for on top of the wave speed.
+    (m/s) the CFL bound allows for on top of the wave speed. ``cuda_graphs``: on a CUDA device,
+    replay each frame's substeps (and each frame's backward) as a captured CUDA graph; off, every
+    kernel is launched from Python (same results up to the order of float atomics).
     """
 
     dx: float
@@ -105,6 +114,7 @@ class SimConfig:
     colliders: list[Collider] = field(default_factory=list)
     effects: list[Effect] = field(default_factory=lambda: [Gravity()])
     device: str = "auto"
+    cuda_graphs: bool = True
 
 
 def domain_around(points: np.ndarray, dx: float, margin: float = 0.1,
@@ -292,7 +302,11 @@ class Simulator:
         self._stress = any(e.has_stress for e in self.effects)
         self._record: dict | None = None
         self._final: _State | None = None
-        self._tape_buffers: tuple[list[_State], list[_Grid]] | None = None
+        self._buffers: tuple[list[_State], _Grid] | None = None
+        self._tape_buffers: tuple[list[_State], list[_Grid], _State, wp.array] | None = None
+        self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
+        self._graphs: dict[tuple, wp.context.Graph] = {}
+        self._seen: set[tuple] = set()
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -344,15 +358,18 @@ class Simulator:
         self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
-        """Fill the collider pose arrays for the substeps of one frame."""
+        """Fill the collider pose arrays (one row per substep and collider) for one frame."""
         colliders = self.config.colliders
+        rows = n_sub * len(colliders) if colliders else 1
+        if rows != self._collider_rows:
+            d = self.device
+            self._collider_pos = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._collider_rot = wp.zeros(rows, dtype=wp.quat, device=d)
+            self._collider_vel = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._collider_omega = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._collider_rows = rows
+            self._forget_graphs()
         if not colliders:
-            if self._collider_rows == 0:
-                self._collider_pos = wp.zeros(1, dtype=wp.vec3, device=self.device)
-                self._collider_rot = wp.zeros(1, dtype=wp.quat, device=self.device)
-                self._collider_vel = wp.zeros(1, dtype=wp.vec3, device=self.device)
-                self._collider_omega = wp.zeros(1, dtype=wp.vec3, device=self.device)
-                self._collider_rows = 1
             return
         t0 = frame * self.config.frame_dt
         pos = np.zeros((n_sub, len(colliders), 3), np.float32)
@@ -364,11 +381,10 @@ class Simulator:
                 t = t0 + s * dt
                 pos[s, c], rot[s, c] = collider.pose(t)
                 vel[s, c], omega[s, c] = collider.velocity(t)
-        d = self.device
-        self._collider_pos = wp.array(pos.reshape(-1, 3), dtype=wp.vec3, device=d)
-        self._collider_rot = wp.array(rot.reshape(-1, 4), dtype=wp.quat, device=d)
-        self._collider_vel = wp.array(vel.reshape(-1, 3), dtype=wp.vec3, device=d)
-        self._collider_omega = wp.array(omega.reshape(-1, 3), dtype=wp.vec3, device=d)
+        self._collider_pos.assign(pos.reshape(-1, 3))
+        self._collider_rot.assign(rot.reshape(-1, 4))
+        self._collider_vel.assign(vel.reshape(-1, 3))
+        self._collider_omega.assign(omega.reshape(-1, 3))
 
     def set_initial_velocity(self, v: np.ndarray) -> None:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
@@ -464,6 +480,69 @@ class Simulator:
             int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
         ], outputs=[dst.x, dst.v, dst.C])
 
+    def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
+               dt: float) -> None:
+        """One frame's substeps from ``states[current]``, ping-ponging between the two states."""
+        self.params.replicate()
+        for s in range(n_sub):
+            self._substep(states[current], states[1 - current], grid, s, dt)
+            current = 1 - current
+
+    def _frame_backward(self, states: list[_State], grids: list[_Grid], adjoint: _State,
+                        seed: wp.array, n_sub: int, dt: float) -> None:
+        """Recompute one frame from ``states[0]`` on a tape and carry ``adjoint`` back over it.
+
+        ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own
+        dL/dx, which is in ``seed``) and leaves holding dL/d(state) at its start.
+        """
+        for buffer in [*states, *grids]:
+            for array in buffer.arrays:
+                array.grad.zero_()
+        self.params.zero_replica_grad()
+        tape = wp.Tape()
+        with tape:
+            self.params.replicate()
+            for s in range(n_sub):
+                self._substep(states[s], states[s + 1], grids[s], s, dt)
+        last = states[n_sub]
+        B, N = self.n_batch, self.n_particles
+        wp.launch(_add_vec3, dim=B * N, inputs=[adjoint.x, seed], outputs=[last.x.grad],
+                  device=self.device)
+        wp.copy(last.v.grad, adjoint.v)
+        wp.copy(last.C.grad, adjoint.C)
+        wp.copy(last.b.grad, adjoint.b)
+        tape.backward()
+        for dst, src in zip(adjoint.arrays, states[0].arrays, strict=True):
+            wp.copy(dst, src.grad)
+
+    def _launch(self, key: tuple, body: Callable[[], None]) -> None:
+        """Run ``body`` (device work on the simulator's long-lived arrays only).
+
+        With CUDA graphs, the first run of a ``key`` launches its kernels one by one (which
+        also loads them); the second captures them as a graph, which it and later runs replay.
+        """
+        if not self._use_graphs:
+            body()
+            return
+        graph = self._graphs.get(key)
+        if graph is None:
+            if key not in self._seen:
+                self._seen.add(key)
+                body()
+                return
+            wp.capture_begin(device=self.device, force_module_load=False)
+            try:
+                body()
+            finally:
+                graph = wp.capture_end(device=self.device)
+            self._graphs[key] = graph
+        wp.capture_launch(graph)
+
+    def _forget_graphs(self) -> None:
+        """Drop the captured graphs (the arrays they were captured on are being replaced)."""
+        self._graphs.clear()
+        self._seen.clear()
+
     def _check(self, state: _State, frame: int, dt: float) -> None:
         K = self.n_objects
         stats = wp.array(np.tile([0.0, 0.0, 0.0, np.inf], self.n_batch * K).astype(np.float32),
@@ -535,9 +614,11 @@ class Simulator:
         self.params.validate()
         n_sub, dt = self.time_step(substeps)
         B, N = self.n_batch, self.n_particles
-        total = B * N
-        states = [_State(total, self.device, False) for _ in range(2)]
-        grid = _Grid(B, self.n_objects, self.n_nodes, total, self._stress, self.device, False)
+        if self._buffers is None:
+            self._buffers = ([_State(B * N, self.device, False) for _ in range(2)],
+                             _Grid(B, self.n_objects, self.n_nodes, B * N, self._stress,
+                                   self.device, False))
+        states, grid = self._buffers
         if initial is None:
             self._initial_state(states[0])
         else:
@@ -550,10 +631,9 @@ class Simulator:
         current = 0
         for frame in range(n_frames):
             self._collider_poses(start_frame + frame, n_sub, dt)
-            self.params.replicate()
-            for s in range(n_sub):
-                self._substep(states[current], states[1 - current], grid, s, dt)
-                current = 1 - current
+            self._launch(("frame", n_sub, dt, current),
+                         partial(self._frame, states, current, grid, n_sub, dt))
+            current = (current + n_sub) % 2
             if check:
                 self._check(states[current], start_frame + frame + 1, dt)
             out[frame + 1] = states[current].x.numpy().reshape(B, N, 3)
@@ -582,33 +662,17 @@ class Simulator:
         dL_dx = np.asarray(dL_dx, dtype=np.float32)
         if dL_dx.shape != (n_frames + 1, B, N, 3):
             raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
-        states, grids = self._tape_buffers_for(n_sub)
+        states, grids, adjoint, seed = self._tape_buffers_for(n_sub)
         self.params.zero_grad()
         self.volume.grad.zero_()
-        adjoint = _State(B * N, self.device, False)
-        seed = wp.zeros(B * N, dtype=wp.vec3, device=self.device)
+        for array in adjoint.arrays:
+            array.zero_()
         for frame in reversed(range(n_frames)):
-            for buffer in [*states, *grids]:
-                for array in buffer.arrays:
-                    array.grad.zero_()
-            self.params.zero_replica_grad()
             states[0].copy_from(checkpoints[frame])
             self._collider_poses(start + frame, n_sub, dt)
-            tape = wp.Tape()
-            with tape:
-                self.params.replicate()
-                for s in range(n_sub):
-                    self._substep(states[s], states[s + 1], grids[s], s, dt)
-            last = states[n_sub]
             seed.assign(dL_dx[frame + 1].reshape(-1, 3))
-            wp.launch(_add_vec3, dim=B * N, inputs=[adjoint.x, seed], outputs=[last.x.grad],
-                      device=self.device)
-            wp.copy(last.v.grad, adjoint.v)
-            wp.copy(last.C.grad, adjoint.C)
-            wp.copy(last.b.grad, adjoint.b)
-            tape.backward()
-            for dst, src in zip(adjoint.arrays, states[0].arrays, strict=True):
-                wp.copy(dst, src.grad)
+            self._launch(("backward", n_sub, dt),
+                         partial(self._frame_backward, states, grids, adjoint, seed, n_sub, dt))
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
             params={name: self.params.grad(name) for name in self.params.specs},
@@ -616,13 +680,18 @@ class Simulator:
             volume=self.volume.grad.numpy().reshape(B, N).astype(np.float64),
         )
 
-    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_State], list[_Grid]]:
+    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_State], list[_Grid], _State, wp.array]:
+        """Per-substep states and grids of one frame on a tape, the adjoint state, the seed."""
         if self._tape_buffers is None or len(self._tape_buffers[1]) != n_sub:
+            self._tape_buffers = None  # free the old buffers before allocating the new ones
+            self._forget_graphs()
             total = self.n_batch * self.n_particles
             self._tape_buffers = (
                 [_State(total, self.device, True) for _ in range(n_sub + 1)],
                 [_Grid(self.n_batch, self.n_objects, self.n_nodes, total, self._stress,
                        self.device, True) for _ in range(n_sub)],
+                _State(total, self.device, False),
+                wp.zeros(total, dtype=wp.vec3, device=self.device),
             )
         return self._tape_buffers
 
