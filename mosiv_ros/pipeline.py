@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from mosiv_ros.config import IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
@@ -108,12 +108,13 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         identify = replace(identify, window=window)
     tick = time.perf_counter()
     total = len(identify.curriculum) * identify.iterations
-    done = [0]
+    done: dict[str, int] = {}
 
-    def fit_progress(_record: dict) -> None:
-        done[0] += 1
+    def fit_progress(record: dict) -> None:  # a candidate family's fit has a bar of its own
+        phase = f"family {record['candidate']}" if "candidate" in record else "identify"
+        done[phase] = done.get(phase, 0) + 1
         if progress:
-            progress("identify", done[0], total)
+            progress(phase, done[phase], total)
 
     identification = identify_objects(prepared.frames, prepared.lifted, prepared.recording.scene,
                                       identify, views_of(prepared.recording),
@@ -126,7 +127,9 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         raise SimulationError(f"identification failed: {identification.estimates.scene_message}")
     result = identification.result
     fit = {"loss": result.loss, "iterations": len(result.history), "failures": result.failures,
-           "history": [{k: v for k, v in h.items() if k != "values"} for h in result.history]}
+           "search_s": result.search_s,
+           "history": [{k: v for k, v in h.items() if k != "values"} for h in result.history],
+           "families": [asdict(choice) for choice in identification.families]}
     return evaluate(prepared, identification.estimates, identification.window, out, config, fit)
 
 

@@ -37,6 +37,7 @@ import hashlib
 import json
 import logging
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.identify.coordinates import Coordinate
-from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
+from mosiv_ros.identify.losses import geometry_loss, silhouette_losses
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
@@ -150,7 +151,9 @@ class FitResult:
     """What a fit found.
 
     Fitted values by parameter name (shaped like ``Parameters.get`` without the batch), the
-    free entries and their coordinates, initial velocities per object, the loss history.
+    free entries and their coordinates, initial velocities per object, the loss history (each
+    iteration with its wall time split into simulation forward, loss and backward), the wall time
+    of the search.
     """
 
     values: dict[str, np.ndarray]
@@ -161,6 +164,7 @@ class FitResult:
     per_object_loss: np.ndarray
     history: list[dict] = field(default_factory=list)
     failures: int = 0
+    search_s: float = 0.0
 
 
 class Identifier:
@@ -189,6 +193,7 @@ class Identifier:
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
         self._batches: dict[int, Simulator] = {}
+        self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
     # --- parameters <-> optimisation vector --------------------------------------------------
@@ -246,7 +251,10 @@ class Identifier:
                      grad: bool) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Loss over frames start+1..start+length, dL/du, dL/dvelocity (K, 6), per-object losses."""
         obs, s = self.problem.observations, self.settings
+        tick = time.perf_counter()
         traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
+        self.timing = {"forward_s": time.perf_counter() - tick}
+        tick = time.perf_counter()
         dL = np.zeros(traj.shape, dtype=np.float64)
         total, per = 0.0, np.zeros(obs.n_objects)
         inside = self.inside
@@ -257,16 +265,19 @@ class Identifier:
             total += s.chamfer_weight * value
             dL[f, 0, inside] = s.chamfer_weight * g
             per += np.nan_to_num(per_f)
-            if s.silhouette_weight > 0 and obs.masks:
-                value, g = silhouette_loss(x, self.index, obs.object_ids, obs.views,
-                                           obs.masks[start + f], s.splat_radius, s.per_object_loss,
-                                           self.torch_device)
-                total += s.silhouette_weight * value
-                dL[f, 0] += s.silhouette_weight * g
+        if s.silhouette_weight > 0 and obs.masks:
+            value, g = silhouette_losses(traj[1:, 0], self.index, obs.object_ids, obs.views,
+                                         obs.masks[start + 1: start + length + 1], s.splat_radius,
+                                         s.per_object_loss, self.torch_device)
+            total += s.silhouette_weight * value
+            dL[1:, 0] += s.silhouette_weight * g
         total, dL, per = total / length, dL / length, per / length
+        self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:
             return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
+        tick = time.perf_counter()
         grads = self.sim.backward(dL)
+        self.timing["backward_s"] = time.perf_counter() - tick
         u = self._pack()
         boundary = self.problem.boundary
         if boundary is not None:
@@ -404,7 +415,7 @@ class Identifier:
         adam = _Adam(np.r_[np.full(len(u), s.learning_rate),
                            np.full(velocity.size, s.velocity_learning_rate)])
         history: list[dict] = []
-        stage0, iteration0, failures = 0, 0, 0
+        stage0, iteration0, failures, search_s = 0, 0, 0, 0.0
         signature = self._signature()
         resumed = self._load_checkpoint(signature)
         if resumed is not None:
@@ -412,7 +423,9 @@ class Identifier:
             _LOG.info("resuming identification from %s: stage %d, iteration %d",
                       self.settings.checkpoint_dir, stage0, iteration0)
         else:
+            tick = time.perf_counter()
             u = self._search(velocity)
+            search_s = time.perf_counter() - tick
         stages = [h if 0 < h < n else n for h in s.curriculum]
         for stage in range(stage0, len(stages)):
             length = stages[stage]
@@ -422,6 +435,7 @@ class Identifier:
                 starts = [0]
             anchor: dict[int, SimState] = {}
             for iteration in range(iteration0 if stage == stage0 else 0, s.iterations):
+                tick = time.perf_counter()
                 self._apply(u, velocity)
                 start = starts[iteration % len(starts)]
                 if start > 0 and (start not in anchor or iteration % s.resync_every == 0):
@@ -442,7 +456,8 @@ class Identifier:
                 step = adam.step(np.concatenate([du, dv.ravel()]))
                 u, velocity = u + step[: len(u)], velocity + step[len(u):].reshape(velocity.shape)
                 record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
-                          "loss": loss, "values": self._values_of(u)}
+                          "loss": loss, "values": self._values_of(u),
+                          "seconds": time.perf_counter() - tick, **self.timing}
                 history.append(record)
                 if self.progress is not None:
                     self.progress(record)
@@ -452,7 +467,7 @@ class Identifier:
         loss, _, _, per = self._window_loss(0, n, None, grad=False)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
-        return FitResult(values, self.entries, u, velocity, loss, per, history, failures)
+        return FitResult(values, self.entries, u, velocity, loss, per, history, failures, search_s)
 
     def _values_of(self, u: np.ndarray) -> dict[str, float]:
         return {e.label: float(e.coordinate.to_theta(v)) for e, v in zip(self.entries, u, strict=True)}
