@@ -59,7 +59,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         print(f"  camera {name}: {k.width}x{k.height}, fx {k.K[0, 0]:.1f}, "
               f"{len(camera.frames)} frames, {depth}")
     for obj in recording.scene.objects:
-        print(f"  object {obj.id}: {obj.name} ({obj.family})")
+        print(f"  object {obj.id}: {obj.name} ({obj.family or 'family not declared'})")
     print(f"  gripper poses: {len(recording.gripper_poses)}")
     return 0
 

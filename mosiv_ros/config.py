@@ -100,6 +100,12 @@ class IdentifyConfig:
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    families: list[str] = _param(
+        ["elastic", "plastic", "sand", "fluid"],
+        "Candidate material families of an object whose family the scene does not declare: each "
+        "is fitted on the first 70 % of the window and the one whose rollout is closest (Chamfer) "
+        "to the held-out rest is chosen, then fitted on the whole window. One entry: that family, "
+        "no selection.")
     checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
     output_yaml: str = _param(
         "material_estimates.yaml", "Where to write the estimates (a prediction_node params file)."

@@ -2,8 +2,9 @@
 
 What it is for: turning the dictionary ``pipeline.run`` assembles (estimates, metrics, timing,
 parameter errors against ground truth) into files a person reads: the estimates with their
-standard deviations and status, the scores on the fitted and the held-out frames, and two plots
-per object (observed vs predicted centroid path; Chamfer distance over time).
+standard deviations and status, the candidate families' held-out errors of an object whose
+family was chosen (``identify.family``), the scores on the fitted and the held-out frames, and
+two plots per object (observed vs predicted centroid path; Chamfer distance over time).
 What it is not for: computing anything (``evaluate``, ``identify``).
 """
 
@@ -16,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_ros.identify.family import HOLDOUT
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 
@@ -69,6 +71,7 @@ def _markdown(report: dict, plots: list[str]) -> str:
         std_text = "" if std is None else f"{std:.3g}"
         lines.append(f"| scene | | {name} | {value:.4g} | {std_text} | | | "
                      f"{est['scene_level']} {est['scene_message']} |")
+    lines += _families(est["objects"], (report.get("fit") or {}).get("families", []))
     lines += ["", "## Scores", "",
               "| frames | CD (mm) | EMD (mm) | CD vs truth (mm) | IoU | PSNR (dB) | SSIM |",
               "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -91,6 +94,28 @@ def _markdown(report: dict, plots: list[str]) -> str:
                       f"{fit['failures']} diverged iterations undone."]
     lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+def _families(objects: list[dict], choices: list[dict]) -> list[str]:
+    """The family selection table: each candidate's held-out error, the choice, why one failed."""
+    chosen = [o for o in objects if o.get("family_scores")]
+    if not chosen:
+        return []
+    reasons = {(c["id"], t["family"]): t["reason"] for c in choices for t in c["trials"]}
+    lines = ["", "## Material family", "",
+             "Not declared for the objects below: each candidate family was fitted on the fit "
+             f"window less its last {HOLDOUT:.0%} and scored by its mean Chamfer distance to the "
+             "observations there (held out); the lowest was chosen and fitted on the whole window.",
+             "",
+             "| object | candidate | held-out CD (mm) | |", "| --- | --- | --- | --- |"]
+    for obj in chosen:
+        for family, score in obj["family_scores"].items():
+            if score is not None and math.isfinite(score):
+                note, text = ("chosen" if family == obj["family"] else ""), f"{score * 1e3:.3g}"
+            else:
+                note, text = reasons.get((obj["id"], family), ""), "failed"
+            lines.append(f"| {obj['name']} | {family} | {text} | {note} |")
+    return lines
 
 
 def _cell(metrics: dict, key: str, scale: float = 1.0) -> str:

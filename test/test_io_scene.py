@@ -60,6 +60,15 @@ def test_empty_declaration_is_an_empty_scene():
     assert parse_scene("objects: []\n").objects == []
 
 
+def test_an_object_may_leave_its_family_out_and_round_trips_without_one():
+    scene = parse_scene("objects:\n  - {id: 1, name: heap, params: {density: 1600}}\n"
+                        "  - {id: 2, name: cube, family: elastic}\n")
+    assert scene.objects[0] == SceneObject(1, "heap", None, {"density": 1600})
+    text = scene_to_yaml(scene)
+    assert "family" not in text.split("- id: 2")[0]  # not written as family: null
+    assert parse_scene(text) == scene
+
+
 def test_unknown_family_names_the_field_and_the_choices():
     text = "objects:\n  - {id: 1, name: a, family: elastic}\n  - {id: 2, name: b, family: jelly}\n"
     with pytest.raises(SceneError) as info:
@@ -95,7 +104,7 @@ def test_unknown_family_names_the_field_and_the_choices():
         ("objects: [{id: true, name: a, family: elastic}]", "objects[0].id", "expected an integer"),
         ("objects: [{id: 1.0, name: a, family: elastic}]", "objects[0].id", "expected an integer"),
         ("objects: [{id: 1, name: '', family: elastic}]", "objects[0].name", "non-empty string"),
-        ("objects: [{id: 1, name: a}]", "objects[0].family", "missing"),
+        ("objects: [{name: a, family: sand}]", "objects[0].id", "missing"),
         ("objects: [{id: 1, name: a, family: sand, parms: {}}]", "objects[0].parms", "unknown key"),
         (
             "objects: [{id: 1, name: a, family: sand, params: {E: soft}}]",

@@ -97,10 +97,14 @@ def test_mosiv_graph_runs_the_node_graph_and_prints_where_the_report_is(drop_bag
 def test_estimates_survive_the_diagnostic_status_round_trip():
     estimates = Estimates(
         [ObjectEstimate(3, "jelly", "elastic", {"E": 2.5e4, "nu": 0.31}, {"E": 1.2e3}, 1e-5, WARN,
-                        "poorly identified: nu", [0.3, 0.0, -0.4, 0.0, 0.1, 0.0])],
+                        "poorly identified: nu", [0.3, 0.0, -0.4, 0.0, 0.1, 0.0],
+                        {"elastic": 0.0123, "fluid": float("inf")}),  # family chosen, fluid failed
+         ObjectEstimate(4, "slab", "plastic", {"yield_stress": 2e3}, loss=2e-5)],
         {"ground.friction": 0.45}, {"ground.friction": 0.05}, 1_700_000_000_000_000_000, 6, 0.1)
     back = Estimates.from_statuses(estimates.statuses())
     assert back.to_dict() == estimates.to_dict()
+    assert Estimates.from_dict(yaml.safe_load(estimates.to_yaml())).to_dict() == estimates.to_dict()
+    assert "family_scores" not in estimates.to_dict()["objects"][1]  # a declared family: as before
     with pytest.raises(ValueError, match="status 'mosiv/x': malformed"):
         Estimates.from_statuses([("mosiv/x", "1", OK, "", [("E", "1e4")])])  # no family
 

@@ -38,6 +38,8 @@ OK, WARN, ERROR = "OK", "WARN", "ERROR"
 LEVELS = (OK, WARN, ERROR)
 """Index = diagnostic_msgs/DiagnosticStatus level (OK 0, WARN 1, ERROR 2)."""
 VELOCITY_KEYS = ("vx", "vy", "vz", "wx", "wy", "wz")
+FAMILY_SCORE_PREFIX = "family_score."
+"""Status key of a candidate family's held-out error: ``family_score.<family>`` (m)."""
 SCENE_STATUS = "mosiv/scene"
 
 Status = tuple[str, str, str, str, list[tuple[str, str]]]
@@ -62,14 +64,19 @@ class ObjectEstimate:
     message: str = ""
     velocity: list[float] = field(default_factory=lambda: [0.0] * 6)
     """Initial linear (m/s) and angular (rad/s) velocity at the first observed frame."""
+    family_scores: dict[str, float] = field(default_factory=dict)
+    """When the family was chosen (``identify.family``): each candidate family's held-out error,
+    a mean Chamfer distance in m (inf: its fit failed). Empty for a declared family."""
 
     def key_values(self) -> list[tuple[str, str]]:
         """The DiagnosticStatus ``values`` of this object.
 
-        family, each parameter (SI), ``<name>_std``, the loss, and the initial velocity (vx ..
+        family, the candidate families' held-out errors (``family_score.<family>``, m) when it
+        was chosen, each parameter (SI), ``<name>_std``, the loss, and the initial velocity (vx ..
         wz, m/s and rad/s).
         """
         pairs = [("family", self.family)]
+        pairs += [(FAMILY_SCORE_PREFIX + f, f"{v:.6g}") for f, v in self.family_scores.items()]
         for name, value in self.params.items():
             pairs.append((name, f"{value:.9g}"))
             if name in self.std:
@@ -101,7 +108,9 @@ class Estimates:
             "frame_dt": self.frame_dt,
             "objects": [{"id": o.id, "name": o.name, "family": o.family, "params": o.params,
                          "std": o.std, "loss": o.loss, "level": o.level, "message": o.message,
-                         "velocity": o.velocity} for o in self.objects],
+                         "velocity": o.velocity,
+                         **({"family_scores": o.family_scores} if o.family_scores else {})}
+                        for o in self.objects],
             "scene": self.scene, "scene_std": self.scene_std, "scene_level": self.scene_level,
             "scene_message": self.scene_message,
         }
@@ -115,7 +124,8 @@ class Estimates:
                                   {k: float(v) for k, v in o.get("std", {}).items()},
                                   float(o.get("loss", "nan")), o.get("level", OK),
                                   o.get("message", ""),
-                                  [float(v) for v in o.get("velocity", [0.0] * 6)])
+                                  [float(v) for v in o.get("velocity", [0.0] * 6)],
+                                  {k: float(v) for k, v in o.get("family_scores", {}).items()})
                    for o in data["objects"]]
         return cls(objects, {k: float(v) for k, v in data.get("scene", {}).items()},
                    {k: float(v) for k, v in data.get("scene_std", {}).items()},
@@ -156,12 +166,15 @@ class Estimates:
                 if not name.startswith("mosiv/"):
                     continue
                 family = values.pop("family")
+                scores = {k[len(FAMILY_SCORE_PREFIX):]: float(values.pop(k)) for k in list(values)
+                          if k.startswith(FAMILY_SCORE_PREFIX)}
                 loss = float(values.pop("loss", "nan"))
                 velocity = [float(values.pop(k, 0.0)) for k in VELOCITY_KEYS]
                 std = {k[:-4]: float(values.pop(k)) for k in list(values) if k.endswith("_std")}
                 params = {k: float(v) for k, v in values.items()}
                 objects.append(ObjectEstimate(int(hardware_id), name[len("mosiv/"):], family, params,
-                                              std, loss, status_level, status_message, velocity))
+                                              std, loss, status_level, status_message, velocity,
+                                              scores))
             except (KeyError, ValueError) as error:
                 raise ValueError(f"status {name!r}: malformed estimate ({error})") from None
         return cls(objects, scene, scene_std, int(meta.get("stamp_ns", 0)),

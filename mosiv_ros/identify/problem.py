@@ -13,6 +13,9 @@ calibration and the scene declaration into what ``identify.fit`` needs:
   gripper as a kinematic collider along its recorded poses;
 - the M-PhyGs boundary of the lifted particles (their signed distances), whose per-object
   offset is fitted when lifting sampled a band outside the surface;
+- each object's material family: the declared one; for an object whose family the declaration
+  leaves open (declared without one, or not declared), ``ProblemOptions.families`` (the choice
+  of ``identify.family``) or else ``ProblemOptions.default_family``;
 - the free parameters: for each object the parameters its family uses that the declaration does
   not give (density stays at its declared or default value: geometry alone cannot tell mass),
   each object's friction only when there are other objects to touch, and the ground friction
@@ -25,7 +28,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -33,7 +36,7 @@ from scipy.spatial.transform import Rotation
 from mosiv_ros.identify.fit import Boundary, FitProblem
 from mosiv_ros.identify.observations import Observations, View
 from mosiv_ros.io.recording import Recording
-from mosiv_ros.io.scene import Scene
+from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.lifting.simulation import to_sim_particles
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -63,11 +66,29 @@ class ProblemError(ValueError):
 
 @dataclass
 class ProblemOptions:
-    """Choices the caller makes: the family of undeclared objects and the domain margin."""
+    """Choices the caller makes: the family of objects the declaration leaves open, the margin.
+
+    ``families`` gives such objects' family by id; the others get ``default_family``.
+    """
 
     default_family: str = "elastic"
     margin: float = 0.1
     use_masks: bool = True
+    families: dict[int, str] = field(default_factory=dict)
+
+
+def object_name(scene: Scene, object_id: int) -> str:
+    """The declared name of an object, or ``object_<id>`` for an undeclared one."""
+    item = next((o for o in scene.objects if o.id == object_id), None)
+    return item.name if item is not None else f"object_{object_id}"
+
+
+def declared_params(item: SceneObject | None) -> dict[str, float]:
+    """An object's declared parameters in the simulator's names and units (friction angle in rad)."""
+    known = dict(item.params) if item is not None else {}
+    if "friction_angle_deg" in known:  # the user-facing unit of a friction angle
+        known["friction_angle"] = float(np.radians(known.pop("friction_angle_deg")))
+    return known
 
 
 def views_of(recording: Recording) -> list[View]:
@@ -106,12 +127,13 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
     objects, free = [], []
     for object_id in ids:
         item = declared.get(object_id)
-        family = item.family if item is not None else options.default_family
-        name = item.name if item is not None else f"object_{object_id}"
-        known = dict(item.params) if item is not None else {}
-        if "friction_angle_deg" in known:  # the user-facing unit of a friction angle
-            known["friction_angle"] = np.radians(known.pop("friction_angle_deg"))
-        objects.append(ObjectModel(name, family, known, id=object_id))
+        family = (item.family if item is not None and item.family is not None
+                  else options.families.get(object_id, options.default_family))
+        if family not in FAMILY_PARAMS:
+            raise ProblemError(f"object {object_name(scene, object_id)!r}: unknown material family "
+                               f"{family!r} (known: {', '.join(FAMILY_PARAMS)})")
+        known = declared_params(item)
+        objects.append(ObjectModel(object_name(scene, object_id), family, known, id=object_id))
         for param in FAMILY_PARAMS[family]:
             if param == "density" or param in known or (param == "friction" and len(ids) < 2):
                 continue

@@ -1,10 +1,12 @@
 """Stage 3 as one call: observed frames + lifted particles + scene -> estimates.
 
 ``identify_objects`` is what both ``mosiv run`` (``mosiv_ros.pipeline``) and ``identify_node``
-do: build the fit problem from the frames (the first ``config.window`` of them, or all), fit,
-estimate the uncertainty, and turn the result into ``Estimates``. A failed fit (a simulation
-that keeps diverging, a problem that cannot be built) is reported as ERROR estimates rather than
-raised, so that a node keeps running and a late subscriber learns what went wrong.
+do: choose the family of every object the scene leaves open among ``config.families``
+(``identify.family``: by held-out error within the window), build the fit problem from the
+frames (the first ``config.window`` of them, or all), fit, estimate the uncertainty, and turn
+the result into ``Estimates`` (with the candidates' scores of a chosen family). A failed fit (a
+simulation that keeps diverging, a problem that cannot be built) is reported as ERROR estimates
+rather than raised, so that a node keeps running and a late subscriber learns what went wrong.
 
 ``fit_problem`` fits a problem already built (the loop closure, ``mosiv_ros.loop``, adds
 effects to one before fitting it).
@@ -17,15 +19,16 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
+from mosiv_ros.identify.family import FamilyChoice, candidate_families, select_families
 from mosiv_ros.identify.fit import FitProblem, FitResult, FitSettings, Identifier
 from mosiv_ros.identify.observations import View
-from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem
+from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem, object_name
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -36,12 +39,13 @@ _LOG = logging.getLogger(__name__)
 
 @dataclass
 class Identification:
-    """What stage 3 produced: the estimates, and (when the fit ran) the fit itself."""
+    """What stage 3 produced: the estimates, (when the fit ran) the fit itself, chosen families."""
 
     estimates: Estimates
     identifier: Identifier | None = None
     result: FitResult | None = None
     window: int = 0
+    families: list[FamilyChoice] = field(default_factory=list)
 
 
 def fit_settings(config: IdentifyConfig) -> FitSettings:
@@ -64,17 +68,30 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
     frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
     window = min(config.window or len(frames), len(frames))
     try:
-        problem = build_problem(frames[:window], lifted, scene, views, gripper_poses,
-                                problem_options(config, views))
-        return fit_problem(problem, config, progress, window)
+        options = problem_options(config, views)
+        choices = select_families(frames[:window], lifted, scene, config, fit_settings(config),
+                                  options, views, gripper_poses, progress)
+        options.families = {c.id: c.family for c in choices}
+        problem = build_problem(frames[:window], lifted, scene, views, gripper_poses, options)
+        identification = fit_problem(problem, config, progress, window)
+        scores = {c.id: c.scores for c in choices}
+        for obj in identification.estimates.objects:
+            obj.family_scores = scores.get(obj.id, {})
+        identification.families = choices
+        return identification
     except (ProblemError, SimulationError, ValueError) as error:
         _LOG.error("identification failed: %s", error)
         return Identification(failed_estimates(lifted, scene, str(error), frames), window=window)
 
 
 def problem_options(config: IdentifyConfig, views: Sequence[View]) -> ProblemOptions:
-    """The problem options identify_node's parameters imply (masks only for a silhouette loss)."""
-    return ProblemOptions(use_masks=config.silhouette_weight > 0 and bool(views))
+    """The problem options identify_node's parameters imply.
+
+    Masks only for a silhouette loss; an object whose family the scene leaves open gets the first
+    candidate family unless ``ProblemOptions.families`` says otherwise.
+    """
+    return ProblemOptions(default_family=candidate_families(config.families)[0],
+                          use_masks=config.silhouette_weight > 0 and bool(views))
 
 
 def fit_problem(problem: FitProblem, config: IdentifyConfig,
@@ -90,13 +107,10 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
 def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,
                      frames: Sequence[ObservedFrame]) -> Estimates:
     """ERROR estimates of every lifted object, saying why the fit failed."""
-    declared = {o.id: o for o in scene.objects}
-    objects = []
-    for object_id in lifted.object_ids:
-        item = declared.get(object_id)
-        objects.append(ObjectEstimate(object_id, item.name if item else f"object_{object_id}",
-                                      item.family if item else "unknown", {}, level=ERROR,
-                                      message=f"fit failed: {reason}"))
+    declared = {o.id: o.family for o in scene.objects}
+    objects = [ObjectEstimate(object_id, object_name(scene, object_id),
+                              declared.get(object_id) or "unknown", {}, level=ERROR,
+                              message=f"fit failed: {reason}") for object_id in lifted.object_ids]
     start = frames[0].stamp_ns if frames else lifted.stamp_ns
     return Estimates(objects, stamp_ns=start, frames=len(frames), scene_level=ERROR,
                      scene_message=f"fit failed: {reason}")

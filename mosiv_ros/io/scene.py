@@ -11,9 +11,13 @@ Schema, version 1::
     objects:                        # optional; empty or absent = nothing declared
       - id: 1                       # int 1..65535, unique; the value in instance masks
         name: red_ball              # non-empty string, unique
-        family: elastic             # one of FAMILIES
+        family: elastic             # optional: one of FAMILIES; omitted (or null) = not
+                                    # declared: identification chooses among its candidate
+                                    # families by held-out error (mosiv_ros.identify.family)
         params: {E: 2.0e5}          # optional: known or initial parameters, SI units, numbers
-                                    # (2.0e5 and 1e5 are numbers here, unlike in plain PyYAML)
+                                    # (2.0e5 and 1e5 are numbers here, unlike in plain PyYAML);
+                                    # without a family, they limit the candidate families to
+                                    # those that use every one of them
     gripper:                        # optional: collider moved along /gripper/pose
       shape: sphere                 # non-empty string; 'sphere' requires radius
       radius: 0.02                  # metres, > 0
@@ -95,11 +99,14 @@ def _plain(value: float) -> float | int:
 
 @dataclass
 class SceneObject:
-    """One declared object: its mask id, unique name, material family and known parameters."""
+    """One declared object: its mask id, unique name, material family and known parameters.
+
+    ``family`` None: the declaration leaves the family open (identification chooses it).
+    """
 
     id: int
     name: str
-    family: str
+    family: str | None = None
     params: dict[str, float] = field(default_factory=dict)
 
     def check(self, where: str = "") -> None:
@@ -111,7 +118,7 @@ class SceneObject:
             raise SceneError(f"{prefix}id", f"{self.id} is outside 1..{MAX_OBJECT_ID}")
         if not isinstance(self.name, str) or not self.name.strip():
             raise SceneError(f"{prefix}name", f"expected a non-empty string, got {self.name!r}")
-        if self.family not in FAMILIES:
+        if self.family is not None and self.family not in FAMILIES:
             raise SceneError(
                 f"{prefix}family",
                 f"unknown material family {self.family!r} (expected one of {', '.join(FAMILIES)})",
@@ -302,11 +309,11 @@ def _object_from_yaml(raw: object, where: str) -> SceneObject:
         raise SceneError(
             f"{where}.{unknown[0]}", f"unknown key (allowed: {', '.join(_OBJECT_KEYS)})"
         )
-    for key in ("id", "name", "family"):
+    for key in ("id", "name"):
         if key not in raw:
             raise SceneError(f"{where}.{key}", "missing")
     params = raw.get("params")
-    return SceneObject(raw["id"], raw["name"], raw["family"], {} if params is None else params)
+    return SceneObject(raw["id"], raw["name"], raw.get("family"), {} if params is None else params)
 
 
 def _effect_from_yaml(raw: object, where: str) -> DeclaredEffect:
@@ -327,7 +334,9 @@ def scene_to_yaml(scene: Scene) -> str:
     """YAML text of ``scene`` that ``parse_scene`` reads back to an equal Scene."""
     document: dict[str, Any] = {"version": SCHEMA_VERSION, "objects": []}
     for obj in scene.objects:
-        entry: dict[str, Any] = {"id": obj.id, "name": obj.name, "family": obj.family}
+        entry: dict[str, Any] = {"id": obj.id, "name": obj.name}
+        if obj.family is not None:
+            entry["family"] = obj.family
         if obj.params:
             entry["params"] = dict(obj.params)
         document["objects"].append(entry)

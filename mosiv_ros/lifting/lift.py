@@ -39,7 +39,8 @@ from mosiv_ros.recon.reconstruct import VOXEL_FIELD, ObservedFrame, ground_plane
 _LOG = logging.getLogger(__name__)
 
 UNKNOWN_MATERIAL = 255
-"""``material`` code of an object the scene does not declare (codes: index in ``FAMILIES``)."""
+"""``material`` code of an object whose family the scene does not declare (codes: index in
+``FAMILIES``); identification chooses its family (``identify.family``)."""
 _KEY_BITS = 21
 _KEY_OFFSET = 1 << (_KEY_BITS - 1)
 
@@ -238,10 +239,10 @@ def _assemble(x: list, object_id: list, sdf: list, config: LiftingConfig, scene:
     material = np.full(len(ids), UNKNOWN_MATERIAL, np.uint8)
     declared = {o.id: o.family for o in scene.objects} if scene is not None else {}
     for i in sorted(int(v) for v in np.unique(ids)):
-        if i in declared:
+        if declared.get(i) is not None:
             families[i] = declared[i]
             material[ids == i] = FAMILIES.index(declared[i])
-        else:
+        elif i not in declared:
             warnings.append(f"object {i} is not declared in the scene: material family unknown "
                             f"(code {UNKNOWN_MATERIAL})")
     return LiftedParticles(

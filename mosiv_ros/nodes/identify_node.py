@@ -3,12 +3,13 @@
 Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set) and ``/mosiv/particles``
 (latched). Once it has the particles and ``window`` frames from the particles' frame on (with
 ``window`` 0: at least two frames and ``idle_timeout`` seconds without a new one; with a window
-that the stream never fills: three times that), it runs the core's
-``identify_objects`` in a worker thread, reporting progress on ``/diagnostics`` and in its log,
-then publishes ``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one
-status per object named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``)
-and writes the estimates to ``output_yaml`` (which prediction_node also reads). A failed fit is
-published as ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
+that the stream never fills: three times that), it runs the core's ``identify_objects`` in a
+worker thread (an object whose family the scene leaves out gets one of ``families``, chosen by
+held-out error first), reporting progress on ``/diagnostics`` and in its log, then publishes
+``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one status per object
+named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``) and writes the
+estimates to ``output_yaml`` (which prediction_node also reads). A failed fit is published as
+ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
 silhouettes stay with the reconstruction (``mosiv run`` uses both).
 
 With ``close_loop`` it then closes the loop on the same frames (``mosiv_ros.loop``: the last
@@ -27,6 +28,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.identify.family import candidate_families
 from mosiv_ros.identify.run import identify_objects
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.io.scene import Scene, load_scene
@@ -55,6 +57,7 @@ class IdentifyNode(Node):
     def __init__(self) -> None:
         super().__init__(NAME)
         self.config: IdentifyConfig = declare_config(self, IdentifyConfig)
+        candidate_families(self.config.families)  # a bad list stops the node now, not after the stream
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         self.estimates_pub = self.create_publisher(
             DiagnosticArray, "/mosiv/material_estimates", LATCHED_QOS)
@@ -112,10 +115,15 @@ class IdentifyNode(Node):
             pairs = [("stage", str(record["stage"])), ("window", str(record["window"])),
                      ("iteration", str(record["iteration"])), ("loss", f"{record['loss']:.6g}"),
                      ("elapsed_s", f"{time.monotonic() - started:.1f}")]
+            candidate = record.get("candidate")  # a candidate family's fit (identify.family)
+            if candidate:
+                pairs.append(("candidate", candidate))
+            message = f"fitting family candidate {candidate}" if candidate else "fitting"
             self.progress_pub.publish(diagnostics_msg(
-                [("mosiv/identify", "", "OK", "fitting", pairs)], self.get_clock().now().nanoseconds))
-            self.get_logger().info(f"stage {record['stage']} (window {record['window']}) iteration "
-                                   f"{record['iteration']}: loss {record['loss']:.4g}")
+                [("mosiv/identify", "", "OK", message, pairs)], self.get_clock().now().nanoseconds))
+            prefix = f"family candidate {candidate}: " if candidate else ""
+            self.get_logger().info(f"{prefix}stage {record['stage']} (window {record['window']}) "
+                                   f"iteration {record['iteration']}: loss {record['loss']:.4g}")
 
         identification = identify_objects(frames, self.particles, self.scene, self.config,
                                           progress=progress)

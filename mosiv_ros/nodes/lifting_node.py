@@ -5,7 +5,7 @@ Subscribes to ``/mosiv/observed_objects``; lifts the first frame in which every 
 the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, latched (reliable +
 transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
 (float32), object_id, segment (uint16) and material (uint8, the family's index in
-``mosiv_ros.io.scene.FAMILIES``, 255 = undeclared). Later frames are ignored.
+``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared). Later frames are ignored.
 """
 
 from __future__ import annotations

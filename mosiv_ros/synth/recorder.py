@@ -72,8 +72,8 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     cameras = render_cameras(layout, positions, offsets, rng, progress)
     ground, effects = declaration(spec.effects, spec.ground.height)
     scene = Scene(
-        objects=[SceneObject(o.id, o.name, o.family, {p: o.params[p] for p in o.declared_params})
-                 for o in spec.objects],
+        objects=[SceneObject(o.id, o.name, o.family if o.declared_family else None,
+                             {p: o.params[p] for p in o.declared_params}) for o in spec.objects],
         gripper=spec.gripper.declaration() if spec.gripper else None,
         ground=ground,
         effects=effects,
@@ -249,7 +249,8 @@ def ground_truth_document(layout: Layout, settings: dict[str, Any], seed: int) -
     for obj, body in zip(spec.objects, layout.bodies, strict=True):
         objects.append({
             "id": obj.id, "name": obj.name, "family": obj.family, "params": obj.params,
-            "declared_params": obj.declared_params, "shape": obj.shape, "size": obj.size,
+            "declared_params": obj.declared_params, "declared_family": obj.declared_family,
+            "shape": obj.shape, "size": obj.size,
             "position": obj.position, "orientation": obj.orientation, "velocity": obj.velocity,
             "angular_velocity": obj.angular_velocity, "color": obj.color, "texture": obj.texture,
             "particles": len(body.rest), "particle_volume": body.volume,

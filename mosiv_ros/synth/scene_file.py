@@ -30,6 +30,7 @@ given in degrees as ``friction_angle_deg``). Unknown keys are errors everywhere:
         params: {E: 5.0e4, nu: 0.3}  # optional: the family's parameters (simulator defaults
                                      #   otherwise); sand: friction_angle_deg instead of radians
         declared_params: [density]   # optional: parameters the bag's declaration tells
+        declared_family: true        # optional: false = the declaration leaves the family out
         color: [210, 40, 35]         # optional RGB 0..255 (default: a palette colour by id)
         texture: checker             # optional: none (default) | checker, a darker colour on
         texture_scale: 0.03          #   rest-frame cubes of this side (m), moving with the material
@@ -115,6 +116,7 @@ class ObjectSpec:
     color: np.ndarray
     texture: str = "none"
     texture_scale: float = 0.03
+    declared_family: bool = True
 
 
 @dataclass
@@ -293,6 +295,7 @@ def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
         color=_color(f, "color", PALETTE[(object_id - 1) % len(PALETTE)]),
         texture=f.string("texture", "none", choices=TEXTURES),
         texture_scale=f.number("texture_scale", ObjectSpec.texture_scale, positive=True),
+        declared_family=f.boolean("declared_family", True),
     )
     f.done(f" for a {shape}")
     return spec
