@@ -35,6 +35,7 @@ import numpy as np
 import warp as wp
 
 from mosiv_ros.sim.errors import ParameterError
+from mosiv_ros.sim.kernels import divide
 from mosiv_ros.sim.params import ParamSpec, param
 
 
@@ -151,7 +152,7 @@ def drag_kernel(
     i = wp.tid()
     mass = m[i]
     if mass > 0.0:
-        v = p[i] / mass
+        v = divide(p[i], mass)  # not p[i] / mass: see kernels.divide
         c = param(coefficient, i // n_nodes, i)
         if quadratic != 0:
             c = c * wp.length(v)

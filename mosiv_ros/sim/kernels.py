@@ -147,6 +147,23 @@ def p2g(
 
 
 @wp.func
+def divide(a: wp.vec3, s: float):
+    """The quotient a / s (s > 0) by components: the same float32 values, a finite adjoint.
+
+    Warp's adjoint of ``vec3 / float`` takes -(a . adj) / (s * s), and s * s underflows in
+    float32 (to zero below s ~ 3e-23, to a denormal of few bits below 1e-19). Grid masses that
+    small are real: a particle d cells short of a half-cell point puts 0.5 d^2 of its weight on
+    the node across, and d ~ 1e-6 along two axes leaves 1e-25 of its mass there (particles of a
+    settled sand pile creep across such points along x and y at once on the pile's diagonals).
+    The adjoint was then inf, or 0 / 0, and every gradient of the rollout NaN. A float
+    division's adjoint is -(adj (a / s)) / s: the quotient comes first, so it stays finite
+    whenever the quotient is (for p / m it is adj v / m, and the adj v a node gathers from its
+    particles scales with the mass it holds from them).
+    """
+    return wp.vec3(a[0] / s, a[1] / s, a[2] / s)
+
+
+@wp.func
 def field_velocity(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
@@ -158,7 +175,7 @@ def field_velocity(
     m = grid_m[index]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        vel = grid_p[index] / m + grid_a[index] * dt
+        vel = divide(grid_p[index], m) + grid_a[index] * dt
     return vel
 
 
@@ -345,13 +362,13 @@ def grid_update(
             if g_len > 0.0:
                 # outward normal of field k towards the others: into the lead object, or out of it
                 # when k is the lead
-                n = g_lead / g_len
+                n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
                 if k == lead:
                     n = -n
                 m_total = present_m[at]
                 mu_k = param(friction, batch * n_objects + k, index)
                 mu_pair = 0.5 * (mu_k + (present_mu[at] - mu_k * m) / (m_total - m))
-                v_cm = present_p[at] / m_total
+                v_cm = divide(present_p[at], m_total)
                 rel = vel - v_cm
                 if wp.dot(rel, n) > 0.0:
                     # approaching: the others are a surface of outward normal -n
