@@ -93,8 +93,8 @@ class IdentifyConfig:
     velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.")
     windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.")
     search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.")
-    search_rounds: int = _param(3, "Rounds of the batched coordinate search before Adam; 0 = none.")
-    search_points: int = _param(5, "Values tried per parameter in a search round.")
+    search_rounds: int = _param(
+        3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.")
     search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")
     uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")

@@ -39,7 +39,7 @@ HEAP = {
     "simulation": {"dx": 0.02, "margin": 0.1},
 }
 FIT = IdentifyConfig(curriculum=[0], iterations=6, search_samples=6, search_rounds=0,
-                     search_points=3, uncertainty=False, silhouette_weight=0.0, device="cpu",
+                     uncertainty=False, silhouette_weight=0.0, device="cpu",
                      families=["elastic", "sand"])
 RUN = RunConfig(lifting=LiftingConfig(particle_spacing=0.015), identify=FIT, render=False)
 

@@ -38,7 +38,7 @@ THROW = {
                 "fps": 30.0},
     "simulation": {"dx": 0.03, "margin": 0.1},
 }
-FIT = IdentifyConfig(curriculum=[0], iterations=6, search_samples=6, search_rounds=1, search_points=3,
+FIT = IdentifyConfig(curriculum=[0], iterations=6, search_samples=12, search_rounds=1,
                      uncertainty=False, silhouette_weight=0.0, device="cpu")
 LIFTING = LiftingConfig(particle_spacing=0.015)
 
@@ -50,12 +50,13 @@ def _scene(effects: list[dict], **object_changes) -> dict:
     return scene
 
 
-def _close(tmp_path_factory, name: str, scene: dict, fit: IdentifyConfig = FIT):
+def _close(tmp_path_factory, name: str, scene: dict, fit: IdentifyConfig = FIT,
+           loop: LoopConfig = LoopConfig(silhouettes=False)):
     bag = record_scene(tmp_path_factory.mktemp("loop"), scene, name)
     config = RunConfig(lifting=LIFTING)
     prepared = prepare(bag, config)
     closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene, fit,
-                          LoopConfig(silhouettes=False), views_of(prepared.recording),
+                          loop, views_of(prepared.recording),
                           reobserver=Reobserver(prepared.recording, config))
     return closure.run()
 
@@ -91,7 +92,8 @@ def test_with_the_undeclared_drag_accepted_the_stiffness_moves_closer_to_the_tru
     scene = _scene([DRAG], params={"E": truth, "nu": 0.3}, declared_params=[],
                    position=[-0.15, 0.0, 0.12], velocity=[1.2, 0.0, -0.6])
     scene["duration"] = 0.4
-    result = _close(tmp_path_factory, "stiffness", scene)
+    # with E free, damping ranks first (a soft, damped cube slows down too): refit three
+    result = _close(tmp_path_factory, "stiffness", scene, loop=LoopConfig(silhouettes=False, top_k=3))
     assert result.verdict == EXPLAINED and result.after.names == ["drag"]
     assert result.after.effects[0][1]["drag.coefficient[jelly]"] == pytest.approx(5.0, rel=0.3)  # measured 6.0
     assert _factor(result) >= 2.0  # measured 27.7 -> 5.6 mm (4.9x)
@@ -173,7 +175,7 @@ def _params_file(tmp_path, fast_params):
     params = yaml.safe_load(fast_params.read_text())
     params["identify_node"]["ros__parameters"].update(
         {k: getattr(FIT, k) for k in ("curriculum", "iterations", "search_samples", "search_rounds",
-                                      "search_points", "device")})
+                                      "device")})
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params))
     return path

@@ -10,11 +10,16 @@ velocity) to its observations with Adam on the simulator's gradients:
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
 - before Adam, a gradient-free search, all its candidates simulated in batched rollouts of
   the first ``search_frames`` frames (0 = all): ``search_samples`` points of a Latin hypercube
-  around the initial coordinates (half-width ``search_decades`` decades for scale parameters,
-  2 logit units otherwise; coupled parameters can make a greedy search settle in a wrong basin),
-  the best of them then refined by ``search_rounds`` coordinate passes, each parameter set in
-  turn to the best of ``search_points`` values (full width for two rounds, then 3x narrower
-  each round);
+  over a box, which for a material parameter is its prior range ``SEARCH_RANGES`` (a yield
+  stress far above the true one leaves the loss flat, so no gradient finds the way down: the
+  samples must land below it) and otherwise the initial value +- ``search_decades`` decades
+  (scale parameters) or 2 logit units. The best sample is kept; with per-object losses, so is
+  the composite that takes each object's parameters from the sample that fits that object
+  best (each object's loss depends mostly on its own parameters, so 32 samples search each
+  object's few dimensions rather than all objects' together), whichever of the two fits
+  better. Then ``search_rounds`` more such rounds, each in a box 3x narrower than the last
+  around the best so far (samples that move every coordinate at once follow the valleys of
+  coupled parameters, such as E and nu, which one-coordinate-at-a-time passes stall in);
 - horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
   windows of h frames, up to ``windows`` of them spread over the sequence and taken in turn;
   the last stage (0) fits the whole sequence from frame 0;
@@ -36,9 +41,11 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,6 +61,19 @@ from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
 _LOG = logging.getLogger(__name__)
 
 CHECKPOINT_FILE = "identify_checkpoint.npz"
+
+SEARCH_RANGES = {
+    "E": (3.0e3, 1.0e6),
+    "nu": (0.05, 0.45),
+    "yield_stress": (1.0e2, 3.0e4),
+    "friction_angle": (math.radians(15.0), math.radians(50.0)),
+    "bulk_modulus": (1.0e4, 1.0e6),
+    "viscosity": (1.0e-2, 1.0e2),
+    "friction": (0.05, 1.5),
+}
+"""Prior ranges (SI) of the material parameters that the global search samples: soft solids,
+clays, sands and liquids a robot handles. Adam may leave them; stiffer solids than 1 MPa barely
+deform at the resolution of a few-millimetre reconstruction anyway."""
 
 
 @dataclass
@@ -73,7 +93,6 @@ class FitSettings:
     checkpoint_dir: str = ""
     splat_radius: float = 0.005
     search_samples: int = 32
-    search_points: int = 5
     search_rounds: int = 3
     search_decades: float = 1.0
     search_frames: int = 0
@@ -194,6 +213,7 @@ class Identifier:
         self.observed_centroids = obs.centroids()
         self._batches: dict[int, Simulator] = {}
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
+        self.start: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))  # Adam's start
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
     # --- parameters <-> optimisation vector --------------------------------------------------
@@ -329,13 +349,27 @@ class Identifier:
         as much as its rows and runs at the time step of its stiffest row, one at a time. Over
         frames 1..``frames`` (default all); NaN where a rollout diverged.
         """
+        return self.batch_object_losses(candidates, velocity, frames)[0]
+
+    def batch_object_losses(self, candidates: np.ndarray, velocity: np.ndarray,
+                            frames: int | None = None,
+                            own_time_step: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """``batch_losses`` and each object's share of them, (B,) and (B, K).
+
+        The shares are NaN with the scene-level (ablation) loss, which does not split by object.
+        ``own_time_step``: simulate every row alone, at its own stable time step (the loss of
+        one parameter set at the time step of a stiffer batch differs by up to 10 %).
+        """
         obs = self.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
-        groups = ([candidates] if self.sim.device.startswith("cuda")
-                  else [row[None] for row in candidates])
-        return np.concatenate([self._losses(group, velocity, frames) for group in groups])
+        together = self.sim.device.startswith("cuda") and not own_time_step
+        groups = [candidates] if together else [row[None] for row in candidates]
+        results = [self._losses(group, velocity, frames) for group in groups]
+        return (np.concatenate([total for total, _ in results]),
+                np.concatenate([per for _, per in results]))
 
-    def _losses(self, candidates: np.ndarray, velocity: np.ndarray, frames: int) -> np.ndarray:
+    def _losses(self, candidates: np.ndarray, velocity: np.ndarray,
+                frames: int) -> tuple[np.ndarray, np.ndarray]:
         obs, s = self.problem.observations, self.settings
         n = len(candidates)
         batch = self._batches.get(n)
@@ -361,45 +395,95 @@ class Identifier:
             traj = batch.rollout(frames)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
-            return np.full(n, np.nan)
-        return np.array([np.mean([geometry_loss(traj[f, b, inside[b]].astype(np.float64),
-                                                self.index[inside[b]], obs.points[f],
-                                                s.per_object_loss, obs.trees(f))[0]
-                                  for f in range(1, frames + 1)]) for b in range(n)])
+            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan)
+
+        def frame_loss(job: tuple[int, int]) -> tuple[float, np.ndarray]:
+            b, f = job
+            value, _, per = geometry_loss(traj[f, b, inside[b]].astype(np.float64),
+                                          self.index[inside[b]], obs.points[f],
+                                          s.per_object_loss, obs.trees(f))
+            return value, per
+
+        for f in range(1, frames + 1):
+            obs.trees(f)  # built once, before the threads share them
+        # KD-tree builds and queries release the GIL: score candidates and frames in threads
+        jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            scored = list(pool.map(frame_loss, jobs))
+        total = np.array([value for value, _ in scored]).reshape(n, frames).mean(axis=1)
+        per = np.stack([per for _, per in scored]).reshape(n, frames, -1).mean(axis=1)
+        return total, per
+
+    def _search_box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper coordinates the search samples (see the module docstring)."""
+        lo, hi = np.empty(len(u)), np.empty(len(u))
+        for i, entry in enumerate(self.entries):
+            if entry.name in SEARCH_RANGES:
+                ends = [float(entry.coordinate.to_u(v)) for v in SEARCH_RANGES[entry.name]]
+                lo[i], hi[i] = min(ends), max(ends)
+            else:
+                half = (self.settings.search_decades * np.log(10.0)
+                        if entry.coordinate.kind == "log" else 2.0)
+                lo[i], hi[i] = u[i] - half, u[i] + half
+        return lo, hi
+
+    def _best(self, current: np.ndarray, candidates: np.ndarray, velocity: np.ndarray,
+              groups: list[list[int]]) -> tuple[np.ndarray, float] | None:
+        """The best of ``current``, ``candidates`` and their per-object composite.
+
+        ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
+        simulated in one batch, at the time step of its stiffest row; the best of them, the
+        composite and ``current`` are then compared each at its own time step, as the gradient
+        fit will see them (the loss of one parameter set differs by up to 10 % between time
+        steps, more than a search step gains). None if every candidate diverged.
+        """
+        s = self.settings
+        total, per = self.batch_object_losses(candidates, velocity, s.search_frames)
+        if np.all(np.isnan(total)):
+            return None
+        best = candidates[int(np.nanargmin(total))]
+        composite = best.copy()
+        if not np.all(np.isnan(per)):
+            for k, columns in enumerate(groups):
+                if columns and not np.all(np.isnan(per[:, k])):
+                    composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
+        contenders = [current]
+        for u in (best, composite):
+            if not any(np.allclose(u, c) for c in contenders):
+                contenders.append(u)
+        if len(contenders) == 1:
+            return current.copy(), float(np.nanmin(total))
+        losses = self.batch_object_losses(np.array(contenders), velocity, s.search_frames,
+                                          own_time_step=True)[0]
+        if np.all(np.isnan(losses)):
+            return None
+        pick = int(np.nanargmin(losses))
+        return contenders[pick].copy(), float(losses[pick])
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:
         """Global sampling, then coordinate search (see the module docstring); return u."""
         s = self.settings
         u = self._pack()
-        half = np.array([s.search_decades * np.log(10.0) if e.coordinate.kind == "log" else 2.0
-                         for e in self.entries])
-        if s.search_samples > 0:
-            rng = np.random.default_rng(0)
-            # Latin hypercube over u +- half: every coordinate's range cut into as many strata
-            # as samples, one sample per stratum, strata paired at random across coordinates
+        lo, hi = self._search_box(u)
+        n_objects = len(self.problem.objects)
+        per_object = [[i for i, e in enumerate(self.entries) if e.per_object and e.index[1] == k]
+                      for k in range(n_objects)]
+        rng = np.random.default_rng(0)
+        ranged = np.array([e.name in SEARCH_RANGES for e in self.entries])
+        for round_ in range(s.search_rounds + 1 if s.search_samples > 0 else 0):
+            half = 0.5 * (hi - lo) / 3.0**round_
+            box_lo, box_hi = (lo, hi) if round_ == 0 else (u - half, u + half)
+            box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
+            box_hi = np.where(ranged, np.minimum(box_hi, hi), box_hi)
+            # Latin hypercube: every coordinate's range cut into as many strata as samples,
+            # one sample per stratum, strata paired at random across coordinates
             strata = np.stack([rng.permutation(s.search_samples) for _ in u], axis=1)
             unit = (strata + rng.random(strata.shape)) / s.search_samples
-            candidates = np.vstack([u[None], u + half * (2 * unit - 1)])
-            losses = self.batch_losses(candidates, velocity, s.search_frames)
-            if not np.all(np.isnan(losses)):
-                u = candidates[int(np.nanargmin(losses))].copy()
-                _LOG.info("search: best of %d samples, loss %.3g (start %.3g): %s",
-                          s.search_samples, np.nanmin(losses), losses[0], self._values_of(u))
-        if s.search_points < 2:
-            self._apply(u, velocity)
-            return u
-        for round_ in range(s.search_rounds):
-            shrink = 3.0 ** max(0, round_ - 1)  # two rounds at full width, then narrower
-            for i, entry in enumerate(self.entries):
-                grid = u[i] + half[i] / shrink * np.linspace(-1.0, 1.0, s.search_points)
-                candidates = np.repeat(u[None], s.search_points, axis=0)
-                candidates[:, i] = grid
-                losses = self.batch_losses(candidates, velocity, s.search_frames)
-                if np.all(np.isnan(losses)):
-                    continue
-                u[i] = grid[int(np.nanargmin(losses))]
-                _LOG.info("search round %d: %s = %.4g (loss %.3g)", round_ + 1, entry.label,
-                          float(entry.coordinate.to_theta(u[i])), np.nanmin(losses))
+            found = self._best(u, box_lo + (box_hi - box_lo) * unit, velocity, per_object)
+            if found is not None:
+                u = found[0]
+                _LOG.info("search round %d: best of %d samples, loss %.3g: %s", round_,
+                          s.search_samples, found[1], self._values_of(u))
         self._apply(u, velocity)
         return u
 
@@ -426,6 +510,7 @@ class Identifier:
             tick = time.perf_counter()
             u = self._search(velocity)
             search_s = time.perf_counter() - tick
+            self.start = (u.copy(), velocity.copy())
         stages = [h if 0 < h < n else n for h in s.curriculum]
         for stage in range(stage0, len(stages)):
             length = stages[stage]
@@ -465,6 +550,14 @@ class Identifier:
                                       iteration + 1, failures)
         self._apply(u, velocity)
         loss, _, _, per = self._window_loss(0, n, None, grad=False)
+        if history:  # Adam may wander off where the whole window is concerned: keep the better
+            self._apply(*self.start)
+            start_loss, _, _, start_per = self._window_loss(0, n, None, grad=False)
+            if start_loss < loss:
+                _LOG.warning("the gradient fit ended at loss %.3g, above the %.3g it started "
+                             "from (the search's result); keeping that", loss, start_loss)
+                (u, velocity), loss, per = self.start, start_loss, start_per
+            self._apply(u, velocity)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
         return FitResult(values, self.entries, u, velocity, loss, per, history, failures, search_s)
@@ -492,7 +585,8 @@ class Identifier:
         directory = Path(self.settings.checkpoint_dir)
         directory.mkdir(parents=True, exist_ok=True)
         tmp = directory / (CHECKPOINT_FILE + ".tmp.npz")
-        np.savez(tmp, signature=signature, u=u, velocity=velocity, m=adam.m, v=adam.v,
+        np.savez(tmp, signature=signature, u=u, velocity=velocity, start_u=self.start[0],
+                 start_velocity=self.start[1], m=adam.m, v=adam.v,
                  t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
                  history=json.dumps(history))
         os.replace(tmp, directory / CHECKPOINT_FILE)
@@ -508,6 +602,7 @@ class Identifier:
             if str(data["signature"]) != signature:
                 _LOG.warning("%s belongs to another problem or settings; starting afresh", path)
                 return None
+            self.start = (data["start_u"], data["start_velocity"])
             adam = _Adam(data["lr"])
             adam.m, adam.v, adam.t = data["m"], data["v"], int(data["t"])
             return (data["u"], data["velocity"], adam, json.loads(str(data["history"])),

@@ -56,7 +56,6 @@ def fit_settings(config: IdentifyConfig) -> FitSettings:
         chamfer_weight=config.chamfer_weight, silhouette_weight=config.silhouette_weight,
         per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
         windows=config.windows, search_samples=config.search_samples,
-        search_points=config.search_points,
         search_rounds=config.search_rounds, search_frames=config.search_frames)
 
 
