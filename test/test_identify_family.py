@@ -24,6 +24,7 @@ from mosiv_ros.identify.family import SCORES_FILE, candidate_families, open_obje
 from mosiv_ros.identify.run import fit_settings, identify_objects, problem_options
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.lifting.lift import UNKNOWN_MATERIAL, LiftedParticles
+from mosiv_ros.loop.closure import LoopClosure, LoopConfig
 from mosiv_ros.pipeline import RunConfig, prepare, run
 
 HEAP = {
@@ -169,3 +170,32 @@ def test_an_interrupted_selection_resumes_without_refitting_finished_candidates(
     scores = identification.estimates.objects[0].family_scores
     assert scores["elastic"] == saved["1-elastic"]["score"]
     assert yaml.safe_load((tmp_path / SCORES_FILE).read_text())["trials"].keys() == {"1-elastic", "1-sand"}
+
+
+def test_a_final_fit_that_fails_after_the_selection_reports_the_chosen_family(heap):
+    config = replace(FIT, iterations=1, search_samples=0)
+
+    def fail_in_the_final_fit(record: dict) -> None:
+        if "candidate" not in record:
+            raise ValueError("stopped in the final fit")
+
+    identification = identify_objects(heap.frames[:10], heap.lifted, heap.recording.scene, config,
+                                      progress=fail_in_the_final_fit)
+    obj = identification.estimates.objects[0]
+    assert obj.level == ERROR and obj.message == "fit failed: stopped in the final fit"
+    chosen = identification.families[0]
+    assert obj.family == chosen.family and obj.family != "unknown"
+    assert obj.family_scores == chosen.scores and list(obj.family_scores) == ["elastic", "sand"]
+
+
+def test_the_loop_closure_fits_every_model_with_the_family_it_chose(heap):
+    closure = LoopClosure(heap.frames[:16], heap.lifted, heap.recording.scene,
+                          replace(FIT, iterations=2), LoopConfig(holdout=0.3))
+    # 16 frames: the loop fits 11; the selection fits 7 of those and holds out 4
+    closure.families = closure.choose_families()
+    chosen = closure.families[0]
+    assert chosen.family == "sand" and [t.family for t in chosen.trials] == ["elastic", "sand"]
+    model = closure.fit([], None, "fit declared model")
+    assert [o.family for o in model.identification.identifier.problem.objects] == ["sand"]
+    assert model.estimates.objects[0].family == "sand"
+    assert model.estimates.objects[0].family_scores == chosen.scores

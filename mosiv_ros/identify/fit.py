@@ -28,6 +28,9 @@ velocity) to its observations with Adam on the simulator's gradients:
   velocities offset) so that its centroid position and velocity match the observations at s,
   which stops drift from one window leaking into the next. The anchor is refreshed every
   ``resync_every`` iterations;
+- the result is the lowest whole-window loss among the search's point, the whole-sequence
+  stage's iterates and Adam's last step (a windowed stage's objective is not the whole window's,
+  and Adam's last step need not be its best);
 - a diverging rollout does not end the fit: the step is undone and the learning rate halved;
 - with a checkpoint directory the state is written after every iteration and a rerun of the
   same problem resumes from it.
@@ -214,6 +217,8 @@ class Identifier:
         self._batches: dict[int, Simulator] = {}
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.start: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))  # Adam's start
+        # the lowest whole-window loss an iteration saw, and its point (u, velocity)
+        self.best: tuple[float, np.ndarray, np.ndarray] = (math.inf, np.zeros(0), np.zeros(0))
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
     # --- parameters <-> optimisation vector --------------------------------------------------
@@ -535,6 +540,8 @@ class Identifier:
                     _LOG.warning("iteration %d diverged (%s); step undone, learning rates halved",
                                  iteration, error)
                     continue
+                if start == 0 and length == n and loss < self.best[0]:
+                    self.best = (loss, u.copy(), velocity.copy())
                 if not s.fit_velocity:
                     dv[:] = 0.0
                 dv[~moving] = 0.0  # an object found at rest stays at rest at t = 0
@@ -550,13 +557,17 @@ class Identifier:
                                       iteration + 1, failures)
         self._apply(u, velocity)
         loss, _, _, per = self._window_loss(0, n, None, grad=False)
-        if history:  # Adam may wander off where the whole window is concerned: keep the better
-            self._apply(*self.start)
-            start_loss, _, _, start_per = self._window_loss(0, n, None, grad=False)
-            if start_loss < loss:
-                _LOG.warning("the gradient fit ended at loss %.3g, above the %.3g it started "
-                             "from (the search's result); keeping that", loss, start_loss)
-                (u, velocity), loss, per = self.start, start_loss, start_per
+        if history:  # Adam's last step need not be the best point over the whole window
+            points = {"the search's result": self.start}
+            if self.best[0] < loss:
+                points["the best whole-window iterate"] = self.best[1:]
+            for label, point in points.items():
+                self._apply(*point)
+                other, _, _, other_per = self._window_loss(0, n, None, grad=False)
+                if other < loss:
+                    _LOG.info("the gradient fit ended at loss %.3g, above %s's %.3g; keeping "
+                              "that", loss, label, other)
+                    (u, velocity), loss, per = point, other, other_per
             self._apply(u, velocity)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
@@ -586,7 +597,8 @@ class Identifier:
         directory.mkdir(parents=True, exist_ok=True)
         tmp = directory / (CHECKPOINT_FILE + ".tmp.npz")
         np.savez(tmp, signature=signature, u=u, velocity=velocity, start_u=self.start[0],
-                 start_velocity=self.start[1], m=adam.m, v=adam.v,
+                 start_velocity=self.start[1], best_loss=self.best[0], best_u=self.best[1],
+                 best_velocity=self.best[2], m=adam.m, v=adam.v,
                  t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
                  history=json.dumps(history))
         os.replace(tmp, directory / CHECKPOINT_FILE)
@@ -603,6 +615,7 @@ class Identifier:
                 _LOG.warning("%s belongs to another problem or settings; starting afresh", path)
                 return None
             self.start = (data["start_u"], data["start_velocity"])
+            self.best = (float(data["best_loss"]), data["best_u"], data["best_velocity"])
             adam = _Adam(data["lr"])
             adam.m, adam.v, adam.t = data["m"], data["v"], int(data["t"])
             return (data["u"], data["velocity"], adam, json.loads(str(data["history"])),

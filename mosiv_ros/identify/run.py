@@ -66,6 +66,7 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
     """Fit the objects of ``frames`` (from the lifted frame on); see the module docstring."""
     frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
     window = min(config.window or len(frames), len(frames))
+    choices: list[FamilyChoice] = []
     try:
         options = problem_options(config, views)
         choices = select_families(frames[:window], lifted, scene, config, fit_settings(config),
@@ -80,7 +81,8 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
         return identification
     except (ProblemError, SimulationError, ValueError) as error:
         _LOG.error("identification failed: %s", error)
-        return Identification(failed_estimates(lifted, scene, str(error), frames), window=window)
+        return Identification(failed_estimates(lifted, scene, str(error), frames, choices),
+                              window=window, families=choices)
 
 
 def problem_options(config: IdentifyConfig, views: Sequence[View]) -> ProblemOptions:
@@ -104,12 +106,19 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
 
 
 def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,
-                     frames: Sequence[ObservedFrame]) -> Estimates:
-    """ERROR estimates of every lifted object, saying why the fit failed."""
-    declared = {o.id: o.family for o in scene.objects}
+                     frames: Sequence[ObservedFrame],
+                     choices: Sequence[FamilyChoice] = ()) -> Estimates:
+    """ERROR estimates of every lifted object, saying why the fit failed.
+
+    An object's family is the declared one, else the one ``choices`` chose, else "unknown".
+    """
+    family = {c.id: c.family for c in choices} | {o.id: o.family for o in scene.objects if o.family}
+    scores = {c.id: c.scores for c in choices}
     objects = [ObjectEstimate(object_id, object_name(scene, object_id),
-                              declared.get(object_id) or "unknown", {}, level=ERROR,
-                              message=f"fit failed: {reason}") for object_id in lifted.object_ids]
+                              family.get(object_id, "unknown"), {}, level=ERROR,
+                              message=f"fit failed: {reason}",
+                              family_scores=scores.get(object_id, {}))
+               for object_id in lifted.object_ids]
     start = frames[0].stamp_ns if frames else lifted.stamp_ns
     return Estimates(objects, stamp_ns=start, frames=len(frames), scene_level=ERROR,
                      scene_message=f"fit failed: {reason}")

@@ -7,7 +7,9 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    they decide whether an effect is accepted). The split is by stamp: a model on observations
    remade for a sensor effect (``loop.observations``; a camera time offset) is fitted and
    scored on the same stamps, against its own observations.
-2. Fit the declared model (``identify.run.fit_problem``) and roll its twin over every frame.
+2. Fit the declared model (``identify.run.fit_problem``) and roll its twin over every frame. An
+   object whose family the scene leaves open gets the family ``identify.family`` chooses on the
+   fitted frames, once, before this first fit; every later model keeps it.
 3. Analyse the residual (``loop.residual``). The evidence vector is the centroid residual of
    every object and frame (divided by ``centroid_noise``) and the radius-of-gyration residual
    (divided by ``shape_noise``), all frames after the first. What a refit of the same model
@@ -56,6 +58,7 @@ from scipy.optimize import lsq_linear
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.family import FamilyChoice, select_families
 from mosiv_ros.identify.fit import OFFSET, FitProblem, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import build_problem
@@ -162,6 +165,8 @@ class LoopResult:
     window: int
     config: LoopConfig
     seconds: float
+    families: list[FamilyChoice] = field(default_factory=list)
+    """The families chosen for objects the scene leaves open (empty: every one declared)."""
 
 
 class LoopError(ValueError):
@@ -196,6 +201,7 @@ class LoopClosure:
         self.scene, self.identify, self.reobserver = scene, identify, reobserver
         self.views, self.gripper_poses = list(views), list(gripper_poses)
         self.library, self.progress = list(library), progress
+        self.families: list[FamilyChoice] = []
         self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
                       if scene.ground is not None else None)
 
@@ -228,8 +234,10 @@ class LoopClosure:
         The simulation domain covers every frame (held-out ones too), so that one domain serves
         the fit and the rollouts over the whole recording.
         """
+        options = problem_options(self.identify, self.views)
+        options.families = {c.id: c.family for c in self.families}
         problem = build_problem(observations.frames, observations.lifted, scene, self.views,
-                                self.gripper_poses, problem_options(self.identify, self.views))
+                                self.gripper_poses, options)
         problem.observations = problem.observations.select(slice(0, self.fitted_frames(observations)))
         problem.sim_config.device = self.identify.device
         for candidate in effects:
@@ -261,6 +269,9 @@ class LoopClosure:
                 self.progress(label, done[0], total)
 
         identification = fit_problem(problem, self.identify, progress, self.fitted_frames(observations))
+        scores = {c.id: c.scores for c in self.families}
+        for obj in identification.estimates.objects:
+            obj.family_scores = scores.get(obj.id, {})
         prediction = self.rollout(identification.identifier, observations)
         fitted = [(c, c.read(identification.estimates, prediction, ctx)) for c, _ in effects]
         closed = self.scene
@@ -386,6 +397,7 @@ class LoopClosure:
     def run(self) -> LoopResult:
         tick = time.perf_counter()
         loop = self.loop
+        self.families = self.choose_families()
         before = current = self.fit([], None, "fit declared model")
         rounds: list[Round] = []
         verdict = ""
@@ -418,7 +430,24 @@ class LoopClosure:
             verdict = EXPLAINED if self.significance(current) <= loop.significance else PARTLY
         _LOG.info("loop closure: %s; effects added: %s", verdict, ", ".join(current.names) or "none")
         return LoopResult(before, current, rounds, verdict, self.window, loop,
-                          time.perf_counter() - tick)
+                          time.perf_counter() - tick, self.families)
+
+    def choose_families(self) -> list[FamilyChoice]:
+        """The family of every object the scene leaves open (``identify.family``), chosen once
+        on the fitted frames; every model of the loop then fits that family."""
+        fitted = self.given.frames[: self.window]
+        total = len(self.identify.curriculum) * self.identify.iterations
+        done: dict[str, int] = {}
+
+        def progress(record: dict) -> None:
+            label = f"family {record['candidate']}"
+            done[label] = done.get(label, 0) + 1
+            if self.progress:
+                self.progress(label, done[label], total)
+
+        return select_families(fitted, self.given.lifted, self.scene, self.identify,
+                               fit_settings(self.identify), problem_options(self.identify, self.views),
+                               self.views, self.gripper_poses, progress)
 
     def try_candidate(self, ranked: Ranked, current: Model, ctx: Context) -> None:
         candidate = ranked.candidate

@@ -3,7 +3,7 @@
 ``close_loop(bag, out, config, loop)`` runs stages 1-2 (``pipeline.prepare``), the loop
 (``closure.LoopClosure``) and writes into ``out``:
 
-- ``close_loop.json``: verdict, every round's candidate ranking (explained fraction, first knob
+- ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, every round's candidate ranking (explained fraction, first knob
   estimates, refit held-out error, ratio against the acceptance threshold, accepted or not),
   the accepted effects with their fitted values, the model before and after (estimates,
   centroid errors on the fitted and the held-out frames, CD/EMD (and IoU, PSNR, SSIM unless
@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +69,7 @@ def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | 
         "criterion": (f"accept an effect of p knobs when held-out centroid error new/current <= "
                       f"{result.config.margin} * exp(-{result.config.penalty} p)"),
         "config": dict(result.config.__dict__),
+        "families": [asdict(choice) for choice in result.families],
         "accepted": [_effect(c, values) for c, values in result.after.effects],
         "rounds": [{"significance": r.significance, "accepted": r.accepted,
                     "ranking": [_ranked(x) for x in r.ranking]} for r in result.rounds],
