@@ -433,8 +433,10 @@ class LoopClosure:
                           time.perf_counter() - tick, self.families)
 
     def choose_families(self) -> list[FamilyChoice]:
-        """The family of every object the scene leaves open (``identify.family``), chosen once
-        on the fitted frames; every model of the loop then fits that family."""
+        """The family of every object the scene leaves open, chosen on the fitted frames.
+
+        Chosen once (``identify.family``); every model of the loop then fits that family.
+        """
         fitted = self.given.frames[: self.window]
         total = len(self.identify.curriculum) * self.identify.iterations
         done: dict[str, int] = {}

@@ -3,12 +3,13 @@
 ``close_loop(bag, out, config, loop)`` runs stages 1-2 (``pipeline.prepare``), the loop
 (``closure.LoopClosure``) and writes into ``out``:
 
-- ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, every round's candidate ranking (explained fraction, first knob
-  estimates, refit held-out error, ratio against the acceptance threshold, accepted or not),
-  the accepted effects with their fitted values, the model before and after (estimates,
-  centroid errors on the fitted and the held-out frames, CD/EMD (and IoU, PSNR, SSIM unless
-  ``render`` is off) from ``evaluate.twin``, parameter errors against ``ground_truth.yaml``
-  for a synthetic recording) and the residual analysis of both;
+- ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, every
+  round's candidate ranking (explained fraction, first knob estimates, refit held-out error,
+  ratio against the acceptance threshold, accepted or not), the accepted effects with their
+  fitted values, the model before and after (estimates, centroid errors on the fitted and the
+  held-out frames, CD/EMD (and IoU, PSNR, SSIM unless ``render`` is off) from
+  ``evaluate.twin``, parameter errors against ``ground_truth.yaml`` for a synthetic recording)
+  and the residual analysis of both;
 - ``close_loop.md``: the same for a person to read;
 - plots per object: ``<object>_residual.png`` (centroid and shape residual over time, before
   and after) and ``<object>_paths.png`` (observed vs predicted centroid paths, before and
