@@ -7,6 +7,7 @@ import pytest
 from sim_scenes import scene
 
 from mosiv_ros.identify.coordinates import Coordinate
+from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
 from mosiv_ros.identify.observations import Observations, View
@@ -241,3 +242,24 @@ def test_boundary_offset_gradient_matches_finite_differences():
     assert numeric != 0.0
     # measured 6 % apart (the sigmoid's curvature makes steps of 5e-5 m and more drift away)
     assert analytic == pytest.approx(numeric, rel=0.1)
+
+
+def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the_data_cannot_pin():
+    # the cube meets no other object: its contact friction cannot change the loss at all
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 2e4, "nu": 0.3},
+                                      ["E", "nu", "friction"], frames=8, observed_points=150,
+                                      search_samples=0, iterations=2)
+    identifier = Identifier(problem, settings)
+    result = identifier.run()
+    std = coordinate_std(identifier, result)
+    labels = [e.label for e in identifier.entries]
+    assert labels == ["cube.E", "cube.nu", "cube.friction"]
+    assert np.isfinite(std[0]) and 0 < std[0] < 0.5 and std[2] == np.inf
+    # the same curvature from single rollouts: sqrt(2 L / (terms * d2L/du2)) along log E
+    h = CURVATURE_STEP
+    shifted = [result.u + np.array([s * h, 0.0, 0.0]) for s in (0.0, 1.0, -1.0)]
+    base, up, down = identifier.batch_losses(np.array(shifted), result.velocity, together=True)
+    assert std[0] == pytest.approx(np.sqrt(2 * base / (8 * (up - 2 * base + down) / h**2)), rel=1e-6)
+    cube = estimates_of(identifier, result, std).objects[0]
+    assert cube.level == WARN and "poorly identified: friction" in cube.message
+    assert cube.std["E"] == pytest.approx(std[0] * cube.params["E"], rel=1e-6)  # d E / d log E = E

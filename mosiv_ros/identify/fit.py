@@ -347,27 +347,28 @@ class Identifier:
     # --- gradient-free initialisation -------------------------------------------------------
 
     def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
-                     frames: int | None = None) -> np.ndarray:
+                     frames: int | None = None, together: bool | None = None) -> np.ndarray:
         """Geometry loss of each row of ``candidates`` (coordinate vectors, (B, P)).
 
-        On a GPU all rows are simulated in one batched rollout; on the CPU, where a batch costs
-        as much as its rows and runs at the time step of its stiffest row, one at a time. Over
-        frames 1..``frames`` (default all); NaN where a rollout diverged.
+        ``together`` (default: on a GPU): all rows in one batched rollout, at the time step of
+        the stiffest row; else one at a time, each at its own stable time step (on the CPU a
+        batch costs as much as its rows, and the loss of one parameter set differs by up to
+        10 % between time steps). Over frames 1..``frames`` (default all); NaN where a rollout
+        diverged.
         """
-        return self.batch_object_losses(candidates, velocity, frames)[0]
+        return self.batch_object_losses(candidates, velocity, frames, together)[0]
 
     def batch_object_losses(self, candidates: np.ndarray, velocity: np.ndarray,
                             frames: int | None = None,
-                            own_time_step: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                            together: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``batch_losses`` and each object's share of them, (B,) and (B, K).
 
         The shares are NaN with the scene-level (ablation) loss, which does not split by object.
-        ``own_time_step``: simulate every row alone, at its own stable time step (the loss of
-        one parameter set at the time step of a stiffer batch differs by up to 10 %).
         """
         obs = self.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
-        together = self.sim.device.startswith("cuda") and not own_time_step
+        if together is None:
+            together = self.sim.device.startswith("cuda")
         groups = [candidates] if together else [row[None] for row in candidates]
         results = [self._losses(group, velocity, frames) for group in groups]
         return (np.concatenate([total for total, _ in results]),
@@ -459,7 +460,7 @@ class Identifier:
         if len(contenders) == 1:
             return current.copy(), float(np.nanmin(total))
         losses = self.batch_object_losses(np.array(contenders), velocity, s.search_frames,
-                                          own_time_step=True)[0]
+                                          together=False)[0]
         if np.all(np.isnan(losses)):
             return None
         pick = int(np.nanargmin(losses))
