@@ -261,5 +261,7 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     base, up, down = identifier.batch_losses(np.array(shifted), result.velocity, together=True)
     assert std[0] == pytest.approx(np.sqrt(2 * base / (8 * (up - 2 * base + down) / h**2)), rel=1e-6)
     cube = estimates_of(identifier, result, std).objects[0]
-    assert cube.level == WARN and "poorly identified: friction" in cube.message
+    assert cube.level == WARN and cube.message.startswith("poorly identified: ")
+    poor = cube.message.removeprefix("poorly identified: ").split(", ")
+    assert "friction" in poor and "E" not in poor  # nu is near the edge: flagged on some machines
     assert cube.std["E"] == pytest.approx(std[0] * cube.params["E"], rel=1e-6)  # d E / d log E = E
