@@ -148,7 +148,6 @@ def load_params_file(path: Path | None) -> dict[str, object]:
             for node, config in STAGE_CONFIGS.items()}
 
 
-
 def run_config(params_file: Path | None, device: str | None = None, **options: object):
     """The pipeline's ``RunConfig`` from a params file, ``device`` (if given) for every stage."""
     from mosiv_ros.pipeline import RunConfig
@@ -159,6 +158,7 @@ def run_config(params_file: Path | None, device: str | None = None, **options: o
     if device:
         config.identify.device = config.prediction.device = device
     return config
+
 
 def cmd_run(args: argparse.Namespace) -> int:
     import time

@@ -24,7 +24,7 @@ from mosiv_ros.config import IdentifyConfig, LiftingConfig, PredictionConfig, Re
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.identify.run import identify_objects
+from mosiv_ros.identify.run import identify_objects, phase_progress
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.recording import Recording
@@ -107,18 +107,10 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         window = max(2, int(round(len(prepared.frames) * (1 - config.holdout))))
         identify = replace(identify, window=window)
     tick = time.perf_counter()
-    total = len(identify.curriculum) * identify.iterations
-    done: dict[str, int] = {}
-
-    def fit_progress(record: dict) -> None:  # a candidate family's fit has a bar of its own
-        phase = f"family {record['candidate']}" if "candidate" in record else "identify"
-        done[phase] = done.get(phase, 0) + 1
-        if progress:
-            progress(phase, done[phase], total)
-
     identification = identify_objects(prepared.frames, prepared.lifted, prepared.recording.scene,
                                       identify, views_of(prepared.recording),
-                                      prepared.recording.gripper_poses, fit_progress)
+                                      prepared.recording.gripper_poses,
+                                      phase_progress(progress, identify, "identify"))
     prepared.timing["identify_s"] = time.perf_counter() - tick
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -43,6 +43,7 @@ import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.evaluate.metrics import chamfer_distance
+from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.observations import Observations, View
 from mosiv_ros.identify.problem import ProblemOptions, build_problem, declared_params, object_name
@@ -102,6 +103,14 @@ def candidate_families(families: Sequence[str]) -> list[str]:
         if family in families[:index]:
             raise ValueError(f"identify_node.families[{index}]: {family!r} is listed twice")
     return list(families)
+
+
+def with_family_scores(estimates: Estimates, choices: Sequence[FamilyChoice]) -> Estimates:
+    """``estimates`` with each chosen object's candidate scores as its ``family_scores``."""
+    scores = {c.id: c.scores for c in choices}
+    for obj in estimates.objects:
+        obj.family_scores = scores.get(obj.id, {})
+    return estimates
 
 
 def open_objects(lifted: LiftedParticles, scene: Scene,

@@ -217,8 +217,9 @@ class Identifier:
         self._batches: dict[int, Simulator] = {}
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.start: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))  # Adam's start
-        # the lowest whole-window loss an iteration saw, and its point (u, velocity)
-        self.best: tuple[float, np.ndarray, np.ndarray] = (math.inf, np.zeros(0), np.zeros(0))
+        # the lowest whole-window loss an iteration saw: (loss, u, velocity, per-object losses)
+        self.best: tuple[float, np.ndarray, np.ndarray, np.ndarray] = (
+            math.inf, np.zeros(0), np.zeros(0), np.zeros(0))
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
     # --- parameters <-> optimisation vector --------------------------------------------------
@@ -438,8 +439,9 @@ class Identifier:
         """The best of ``current``, ``candidates`` and their per-object composite.
 
         ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
-        simulated in one batch, at the time step of its stiffest row; the best of them, the
-        composite and ``current`` are then compared each at its own time step, as the gradient
+        scored as ``batch_object_losses`` does by default (on a GPU in one batch, at the time
+        step of its stiffest row); the best of them, the composite and ``current`` are then
+        compared each at its own time step, as the gradient
         fit will see them (the loss of one parameter set differs by up to 10 % between time
         steps, more than a search step gains). None if every candidate diverged.
         """
@@ -467,7 +469,7 @@ class Identifier:
         return contenders[pick].copy(), float(losses[pick])
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:
-        """Global sampling, then coordinate search (see the module docstring); return u."""
+        """Latin-hypercube rounds in ever narrower boxes (see the module docstring); return u."""
         s = self.settings
         u = self._pack()
         lo, hi = self._search_box(u)
@@ -542,7 +544,7 @@ class Identifier:
                                  iteration, error)
                     continue
                 if start == 0 and length == n and loss < self.best[0]:
-                    self.best = (loss, u.copy(), velocity.copy())
+                    self.best = (loss, u.copy(), velocity.copy(), per.copy())
                 if not s.fit_velocity:
                     dv[:] = 0.0
                 dv[~moving] = 0.0  # an object found at rest stays at rest at t = 0
@@ -559,16 +561,15 @@ class Identifier:
         self._apply(u, velocity)
         loss, _, _, per = self._window_loss(0, n, None, grad=False)
         if history:  # Adam's last step need not be the best point over the whole window
-            points = {"the search's result": self.start}
-            if self.best[0] < loss:
-                points["the best whole-window iterate"] = self.best[1:]
-            for label, point in points.items():
-                self._apply(*point)
-                other, _, _, other_per = self._window_loss(0, n, None, grad=False)
+            self._apply(*self.start)
+            start_loss, _, _, start_per = self._window_loss(0, n, None, grad=False)
+            points = {"the search's result": (start_loss, *self.start, start_per),
+                      "the best whole-window iterate": self.best}  # its loss is known
+            for label, (other, other_u, other_velocity, other_per) in points.items():
                 if other < loss:
                     _LOG.info("the gradient fit ended at loss %.3g, above %s's %.3g; keeping "
                               "that", loss, label, other)
-                    (u, velocity), loss, per = point, other, other_per
+                    u, velocity, loss, per = other_u, other_velocity, other, other_per
             self._apply(u, velocity)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
@@ -599,7 +600,7 @@ class Identifier:
         tmp = directory / (CHECKPOINT_FILE + ".tmp.npz")
         np.savez(tmp, signature=signature, u=u, velocity=velocity, start_u=self.start[0],
                  start_velocity=self.start[1], best_loss=self.best[0], best_u=self.best[1],
-                 best_velocity=self.best[2], m=adam.m, v=adam.v,
+                 best_velocity=self.best[2], best_per=self.best[3], m=adam.m, v=adam.v,
                  t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
                  history=json.dumps(history))
         os.replace(tmp, directory / CHECKPOINT_FILE)
@@ -616,7 +617,8 @@ class Identifier:
                 _LOG.warning("%s belongs to another problem or settings; starting afresh", path)
                 return None
             self.start = (data["start_u"], data["start_velocity"])
-            self.best = (float(data["best_loss"]), data["best_u"], data["best_velocity"])
+            self.best = (float(data["best_loss"]), data["best_u"], data["best_velocity"],
+                         data["best_per"])
             adam = _Adam(data["lr"])
             adam.m, adam.v, adam.t = data["m"], data["v"], int(data["t"])
             return (data["u"], data["velocity"], adam, json.loads(str(data["history"])),

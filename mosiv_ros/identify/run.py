@@ -25,7 +25,12 @@ import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
-from mosiv_ros.identify.family import FamilyChoice, candidate_families, select_families
+from mosiv_ros.identify.family import (
+    FamilyChoice,
+    candidate_families,
+    select_families,
+    with_family_scores,
+)
 from mosiv_ros.identify.fit import FitProblem, FitResult, FitSettings, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem, object_name
@@ -74,9 +79,7 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
         options.families = {c.id: c.family for c in choices}
         problem = build_problem(frames[:window], lifted, scene, views, gripper_poses, options)
         identification = fit_problem(problem, config, progress, window)
-        scores = {c.id: c.scores for c in choices}
-        for obj in identification.estimates.objects:
-            obj.family_scores = scores.get(obj.id, {})
+        with_family_scores(identification.estimates, choices)
         identification.families = choices
         return identification
     except (ProblemError, SimulationError, ValueError) as error:
@@ -113,12 +116,30 @@ def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,
     An object's family is the declared one, else the one ``choices`` chose, else "unknown".
     """
     family = {c.id: c.family for c in choices} | {o.id: o.family for o in scene.objects if o.family}
-    scores = {c.id: c.scores for c in choices}
     objects = [ObjectEstimate(object_id, object_name(scene, object_id),
                               family.get(object_id, "unknown"), {}, level=ERROR,
-                              message=f"fit failed: {reason}",
-                              family_scores=scores.get(object_id, {}))
+                              message=f"fit failed: {reason}")
                for object_id in lifted.object_ids]
     start = frames[0].stamp_ns if frames else lifted.stamp_ns
-    return Estimates(objects, stamp_ns=start, frames=len(frames), scene_level=ERROR,
-                     scene_message=f"fit failed: {reason}")
+    return with_family_scores(Estimates(objects, stamp_ns=start, frames=len(frames),
+                                        scene_level=ERROR, scene_message=f"fit failed: {reason}"),
+                              choices)
+
+
+def phase_progress(progress: Callable[[str, int, int], None] | None, config: IdentifyConfig,
+                   phase: str) -> Callable[[dict], None]:
+    """A fit's per-iteration callback that calls ``progress(phase, done, total)``.
+
+    A candidate family's fit (a record with ``candidate``) counts under "family <candidate>", a
+    bar of its own; the rest under ``phase``. ``total`` is one fit's iterations.
+    """
+    total = len(config.curriculum) * config.iterations
+    done: dict[str, int] = {}
+
+    def record_progress(record: dict) -> None:
+        label = f"family {record['candidate']}" if "candidate" in record else phase
+        done[label] = done.get(label, 0) + 1
+        if progress:
+            progress(label, done[label], total)
+
+    return record_progress

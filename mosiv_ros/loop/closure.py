@@ -58,11 +58,17 @@ from scipy.optimize import lsq_linear
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
-from mosiv_ros.identify.family import FamilyChoice, select_families
+from mosiv_ros.identify.family import FamilyChoice, select_families, with_family_scores
 from mosiv_ros.identify.fit import OFFSET, FitProblem, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import build_problem
-from mosiv_ros.identify.run import Identification, fit_problem, fit_settings, problem_options
+from mosiv_ros.identify.run import (
+    Identification,
+    fit_problem,
+    fit_settings,
+    phase_progress,
+    problem_options,
+)
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.loop.library import LIBRARY, Candidate, Context
@@ -260,18 +266,10 @@ class LoopClosure:
             scene = candidate.declare(scene, values, ctx)
         observations = self.observations(effects, ctx)
         problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
-        total = len(self.identify.curriculum) * self.identify.iterations
-        done = [0]
-
-        def progress(_record: dict) -> None:
-            done[0] += 1
-            if self.progress:
-                self.progress(label, done[0], total)
-
-        identification = fit_problem(problem, self.identify, progress, self.fitted_frames(observations))
-        scores = {c.id: c.scores for c in self.families}
-        for obj in identification.estimates.objects:
-            obj.family_scores = scores.get(obj.id, {})
+        identification = fit_problem(problem, self.identify,
+                                     phase_progress(self.progress, self.identify, label),
+                                     self.fitted_frames(observations))
+        with_family_scores(identification.estimates, self.families)
         prediction = self.rollout(identification.identifier, observations)
         fitted = [(c, c.read(identification.estimates, prediction, ctx)) for c, _ in effects]
         closed = self.scene
@@ -437,19 +435,10 @@ class LoopClosure:
 
         Chosen once (``identify.family``); every model of the loop then fits that family.
         """
-        fitted = self.given.frames[: self.window]
-        total = len(self.identify.curriculum) * self.identify.iterations
-        done: dict[str, int] = {}
-
-        def progress(record: dict) -> None:
-            label = f"family {record['candidate']}"
-            done[label] = done.get(label, 0) + 1
-            if self.progress:
-                self.progress(label, done[label], total)
-
-        return select_families(fitted, self.given.lifted, self.scene, self.identify,
-                               fit_settings(self.identify), problem_options(self.identify, self.views),
-                               self.views, self.gripper_poses, progress)
+        return select_families(self.given.frames[: self.window], self.given.lifted, self.scene,
+                               self.identify, fit_settings(self.identify),
+                               problem_options(self.identify, self.views), self.views,
+                               self.gripper_poses, phase_progress(self.progress, self.identify, "family"))
 
     def try_candidate(self, ranked: Ranked, current: Model, ctx: Context) -> None:
         candidate = ranked.candidate
