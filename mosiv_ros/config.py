@@ -77,6 +77,15 @@ class LiftingConfig:
     density_iterations: int = _param(
         1, "Rounds of 3x3x3 mean filtering of the occupancy density (occupied cells reset to 1).")
     density_threshold: float = _param(0.5, "Density at and above which a cell is inside an object.")
+    consensus_frames: int = _param(
+        2, "Later observed frames each object's lifted hull is intersected with, each moved onto it "
+        "(removes hull that an occluding object left in the lifted frame); 0 = lift the frame as observed.")
+    consensus_max_removed: float = _param(
+        0.15, "Largest fraction of an object's voxels one later frame may remove; a frame that would "
+        "remove more (the object deformed or turned) is not used for it.")
+    consensus_timeout: float = _param(
+        5.0, "lifting_node: seconds to wait for the later frames after the first complete one; "
+        "then lift with those that came.")
     scene: str = _param("", SCENE_HELP)
 
 

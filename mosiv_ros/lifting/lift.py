@@ -4,6 +4,8 @@ What it is for: ``lift`` turns an ``/mosiv/observed_objects`` cloud (occupied vo
 object, see ``mosiv_ros.recon.VOXEL_FIELD``) into ``LiftedParticles``, following MOSIV's
 multi-object lifting with M-PhyGs boundary handling:
 
+0. given the next observed frames, each object's hull is first cut to the voxels that they,
+   moved onto it, also hold (``consensus``: hull left by an occluding object goes);
 1. each object's occupancy is resampled onto one world-aligned particle lattice of spacing h;
 2. its density field is smoothed and refined so that thin parts are not eroded (``density``);
 3. every cell within ``boundary_band`` outside an object's surface, or inside it, is claimed by
@@ -23,9 +25,10 @@ What it is not for: reconstruction (``mosiv_ros.recon``) or the simulator itself
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +36,7 @@ import numpy as np
 from mosiv_ros.config import LiftingConfig
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene
+from mosiv_ros.lifting.consensus import consensus
 from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance
 from mosiv_ros.recon.reconstruct import VOXEL_FIELD, ObservedFrame, ground_plane
 
@@ -122,16 +126,25 @@ class LiftedParticles:
                    float(lattice[0]) if len(lattice) else 0.0, beta, eps, cloud.stamp_ns)
 
 
-def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None) -> LiftedParticles:
-    """Particles of every object of one observed cloud (see the module docstring)."""
+def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
+         later: Sequence[PointCloud] = ()) -> LiftedParticles:
+    """Particles of every object of one observed cloud (see the module docstring).
+
+    ``later``: the next observed clouds, at most ``config.consensus_frames`` of them used to trim
+    each object's hull first (``consensus``).
+    """
     start = time.perf_counter()
     h = config.particle_spacing
     if h <= 0 or config.boundary_band < 0:
         raise ValueError(f"need particle_spacing > 0 and boundary_band >= 0, got {h}, "
                          f"{config.boundary_band}")
-    if VOXEL_FIELD not in cloud.fields:
-        raise ValueError(f"observed cloud at stamp {cloud.stamp_ns} ns has no {VOXEL_FIELD!r} field "
-                         "(not a reconstruction_node cloud)")
+    for observed in (cloud, *later):
+        if VOXEL_FIELD not in observed.fields:
+            raise ValueError(f"observed cloud at stamp {observed.stamp_ns} ns has no {VOXEL_FIELD!r} "
+                             "field (not a reconstruction_node cloud)")
+    trimmed: list[str] = []
+    if config.consensus_frames > 0 and later:
+        cloud, trimmed = consensus(cloud, later[:config.consensus_frames], config.consensus_max_removed)
     sizes = np.asarray(cloud.fields[VOXEL_FIELD], dtype=np.float64)
     voxel = sizes > 0
     ids = sorted(int(i) for i in np.unique(cloud.object_id[voxel]))
@@ -150,7 +163,7 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None) -
         claims.append((_keys(box.lo + cells), sdf[tuple(cells.T)]))
     owner = _assign(claims)
     ground = ground_plane(scene)
-    x, object_id, sdf, warnings = [], [], [], []
+    x, object_id, sdf, warnings = [], [], [], list(trimmed)
     for k, object_id_k in enumerate(ids):
         keys, d = claims[k]
         kept = keys[owner[k]]
@@ -191,7 +204,9 @@ def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
     """Stage 2 in-process, as ``lifting_node`` does it: lift the first complete frame.
 
     Complete: every declared object has an occupied voxel (without a declaration: any object).
+    The ``config.consensus_frames`` frames after it trim its hulls (``consensus``).
     """
+    frames = iter(frames)
     for frame in frames:
         cloud = frame.to_cloud()
         missing = missing_objects(cloud, scene)
@@ -199,7 +214,8 @@ def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
             _LOG.warning("stamp %d ns: objects %s not observed; waiting for a complete frame",
                          cloud.stamp_ns, missing)
             continue
-        lifted = lift(cloud, config, scene)
+        later = [f.to_cloud() for f in itertools.islice(frames, max(config.consensus_frames, 0))]
+        lifted = lift(cloud, config, scene, later)
         for message in lifted.warnings:
             _LOG.warning(message)
         _LOG.info("lifted stamp %d ns: %s", cloud.stamp_ns, lifted.summary())

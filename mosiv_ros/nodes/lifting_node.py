@@ -5,10 +5,15 @@ Subscribes to ``/mosiv/observed_objects``; lifts the first frame in which every 
 the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, latched (reliable +
 transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
 (float32), object_id, segment (uint16) and material (uint8, the family's index in
-``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared). Later frames are ignored.
+``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared). The next ``consensus_frames``
+clouds trim each object's hull first (``mosiv_ros.lifting.consensus``): the node lifts once they
+have come, or ``consensus_timeout`` seconds after the first complete frame with those that did.
+Later frames are ignored.
 """
 
 from __future__ import annotations
+
+import time
 
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
@@ -19,6 +24,7 @@ from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting import lift, missing_objects
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
+from mosiv_ros.recon import VOXEL_FIELD
 
 NAME = "lifting_node"
 SUMMARY = "fill each object's first observed frame with simulation particles (latched output)"
@@ -35,6 +41,10 @@ class LiftingNode(Node):
         self.types = rclpy_types()
         self.particles_pub = self.create_publisher(PointCloud2, "/mosiv/particles", LATCHED_QOS)
         self.lifted_stamp: int | None = None
+        self.first: PointCloud | None = None  # the first complete frame, waiting for later ones
+        self.later: list[PointCloud] = []
+        self.first_time = 0.0
+        self.create_timer(0.1, self._lift_on_timeout)
         self.create_subscription(
             PointCloud2, TOPIC, guarded(self, TOPIC, pointcloud_from_msg, self._on_observed), STREAM_QOS)
         declared = ", ".join(str(i) for i in self.scene.ids) if self.scene and self.scene.ids else "any"
@@ -43,14 +53,38 @@ class LiftingNode(Node):
     def _on_observed(self, cloud: PointCloud) -> None:
         if self.lifted_stamp is not None:
             return
+        if self.first is not None:
+            if VOXEL_FIELD not in cloud.fields:
+                self.get_logger().warning(f"{TOPIC} stamp {cloud.stamp_ns} ns: no {VOXEL_FIELD!r} field; "
+                                          "not used to trim the lifted frame")
+            elif cloud.stamp_ns > self.first.stamp_ns:
+                self.later.append(cloud)
+            if len(self.later) >= self.config.consensus_frames:
+                self._lift()
+            return
         missing = missing_objects(cloud, self.scene)
         if missing:
             self.get_logger().warning(
                 f"{TOPIC} stamp {cloud.stamp_ns} ns: objects {missing} not observed; waiting for a "
                 "frame with every declared object")
             return
+        self.first, self.first_time = cloud, time.monotonic()
+        if self.config.consensus_frames <= 0:
+            self._lift()
+
+    def _lift_on_timeout(self) -> None:
+        if (self.first is not None and self.lifted_stamp is None
+                and time.monotonic() - self.first_time > self.config.consensus_timeout):
+            self.get_logger().warning(
+                f"{len(self.later)} of {self.config.consensus_frames} later frames came within "
+                f"{self.config.consensus_timeout} s of stamp {self.first.stamp_ns} ns; lifting with those")
+            self._lift()
+
+    def _lift(self) -> None:
+        cloud, later = self.first, self.later
+        self.first, self.later = None, []
         try:
-            lifted = lift(cloud, self.config, self.scene)
+            lifted = lift(cloud, self.config, self.scene, later)
         except ValueError as error:
             self.get_logger().error(f"{TOPIC} stamp {cloud.stamp_ns} ns: not lifted: {error}")
             return
