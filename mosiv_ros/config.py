@@ -81,7 +81,7 @@ class LiftingConfig:
         2, "Later observed frames each object's lifted hull is intersected with, each moved onto it "
         "(removes hull that an occluding object left in the lifted frame); 0 = lift the frame as observed.")
     consensus_max_removed: float = _param(
-        0.15, "Largest fraction of an object's voxels one later frame may remove; a frame that would "
+        0.05, "Largest fraction of an object's voxels one later frame may remove; a frame that would "
         "remove more (the object deformed or turned) is not used for it.")
     consensus_timeout: float = _param(
         5.0, "lifting_node: seconds to wait for the later frames after the first complete one; "

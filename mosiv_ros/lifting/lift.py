@@ -142,9 +142,8 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         if VOXEL_FIELD not in observed.fields:
             raise ValueError(f"observed cloud at stamp {observed.stamp_ns} ns has no {VOXEL_FIELD!r} "
                              "field (not a reconstruction_node cloud)")
-    trimmed: list[str] = []
     if config.consensus_frames > 0 and later:
-        cloud, trimmed = consensus(cloud, later[:config.consensus_frames], config.consensus_max_removed)
+        cloud = consensus(cloud, later[:config.consensus_frames], config.consensus_max_removed)
     sizes = np.asarray(cloud.fields[VOXEL_FIELD], dtype=np.float64)
     voxel = sizes > 0
     ids = sorted(int(i) for i in np.unique(cloud.object_id[voxel]))
@@ -163,7 +162,7 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         claims.append((_keys(box.lo + cells), sdf[tuple(cells.T)]))
     owner = _assign(claims)
     ground = ground_plane(scene)
-    x, object_id, sdf, warnings = [], [], [], list(trimmed)
+    x, object_id, sdf, warnings = [], [], [], []
     for k, object_id_k in enumerate(ids):
         keys, d = claims[k]
         kept = keys[owner[k]]
