@@ -244,6 +244,45 @@ def test_boundary_offset_gradient_matches_finite_differences():
     assert analytic == pytest.approx(numeric, rel=0.1)
 
 
+def test_the_silhouette_loss_renders_the_particles_inside_the_surface_not_the_boundary_band():
+    # A falling cube seen from above, with and without a shell of boundary-band particles 8 mm
+    # outside it (M-PhyGs: volume ~ eps, not part of the object). The observed masks are the
+    # cube's own footprint; the band, drawn, would change the simulated silhouette.
+    from mosiv_ros.identify.fit import Boundary
+
+    dx, view = 0.02, _camera_looking_down()
+    cube = box((0.0, 0.0, 0.34), (0.04, 0.04, 0.04), dx / 2)
+    shell = box((0.0, 0.0, 0.34), (0.05, 0.05, 0.05), dx / 2)[0]
+    shell = shell[np.abs(shell - [0.0, 0.0, 0.34]).max(axis=1) > 0.04]  # one layer outside
+    objects = [ObjectModel("cube", "elastic", {"E": 5e4})]
+    truth = scene([cube], objects, dx=dx, lo=(-0.2, -0.2, 0.1), hi=(0.2, 0.2, 0.5))
+    traj = truth.rollout(4)[:, 0].astype(np.float64)
+    masks = []
+    for frame in traj:
+        u, v = view.project(frame)[0].T
+        mask = np.zeros((view.height, view.width), dtype=np.uint16)
+        for du in (-2, -1, 0, 1, 2):  # the footprint of particles of 1 cm: +-2 px at 1 m
+            for dv in (-2, -1, 0, 1, 2):
+                mask[np.clip(np.round(v).astype(int) + dv, 0, view.height - 1),
+                     np.clip(np.round(u).astype(int) + du, 0, view.width - 1)] = 1
+        masks.append({view.name: mask})
+    obs = Observations(truth.config.frame_dt, [[f] for f in traj], [1], [view], masks)
+    losses = []
+    for band in (np.zeros((0, 3)), shell):
+        x = np.concatenate([cube[0], band])
+        sdf = np.r_[np.full(len(cube[0]), -0.005), np.full(len(band), 0.008)]
+        particles = Particles(x=x, volume=cube[1], object_index=np.zeros(len(x), dtype=int))
+        problem = FitProblem(objects, particles, obs, truth.config, ["E"],
+                             boundary=Boundary(sdf, cube[1], 5e3, 1e-4, 0.01))
+        identifier = Identifier(problem, FitSettings(fit_velocity=False, silhouette_weight=1.0,
+                                                     chamfer_weight=0.0))
+        identifier._apply(identifier._pack(), np.zeros((1, 6)))
+        losses.append(identifier._window_loss(0, 4, None, grad=False)[0])
+    plain, banded = losses
+    assert plain > 0.0
+    assert banded == pytest.approx(plain, rel=0.02)
+
+
 def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the_data_cannot_pin():
     # the cube meets no other object: its contact friction cannot change the loss at all
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 2e4, "nu": 0.3},

@@ -292,11 +292,12 @@ class Identifier:
             dL[f, 0, inside] = s.chamfer_weight * g
             per += np.nan_to_num(per_f)
         if s.silhouette_weight > 0 and obs.masks:
-            value, g = silhouette_losses(traj[1:, 0], self.index, obs.object_ids, obs.views,
-                                         obs.masks[start + 1: start + length + 1], s.splat_radius,
-                                         s.per_object_loss, self.torch_device)
+            # the particles the Chamfer scores, not the boundary band outside the surface
+            value, g = silhouette_losses(traj[1:, 0][:, inside], self.index[inside], obs.object_ids,
+                                         obs.views, obs.masks[start + 1: start + length + 1],
+                                         s.splat_radius, s.per_object_loss, self.torch_device)
             total += s.silhouette_weight * value
-            dL[1:, 0] += s.silhouette_weight * g
+            dL[1:, 0, inside] += s.silhouette_weight * g
         total, dL, per = total / length, dL / length, per / length
         self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:
