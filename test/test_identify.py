@@ -244,6 +244,29 @@ def test_boundary_offset_gradient_matches_finite_differences():
     assert analytic == pytest.approx(numeric, rel=0.1)
 
 
+def test_after_a_divergence_with_no_step_left_to_undo_the_fit_goes_back_to_its_best_point():
+    # A point can pass one window and diverge on the next: undoing "the last step" again would
+    # leave the fit trying it for the rest of the stage (seen on sand_and_elastic: 12 times).
+    from mosiv_ros.identify.fit import _Adam
+
+    problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2})
+    identifier = Identifier(problem, settings)
+    u, velocity = identifier._pack(), np.zeros((1, 6))
+    adam = _Adam(np.full(len(u) + 6, 0.1))
+    step = adam.step(np.ones(len(u) + 6))
+    moved = u + step[:len(u)]
+    back_u, _, what = identifier._retreat(adam, moved, velocity + step[len(u):].reshape(1, 6))
+    np.testing.assert_allclose(back_u, u)
+    assert what == "step undone"
+    identifier.start = (u - 1.0, velocity)
+    assert identifier._retreat(adam, back_u, velocity)[2] == "back to the search's point"
+    identifier.best = (1e-3, u + 0.5, velocity + 0.1, np.zeros(1))
+    best_u, best_velocity, what = identifier._retreat(adam, back_u, velocity)
+    np.testing.assert_allclose(best_u, u + 0.5)
+    np.testing.assert_allclose(best_velocity, velocity + 0.1)
+    assert what == "back to the best whole-window point"
+
+
 def test_the_silhouette_loss_renders_the_particles_inside_the_surface_not_the_boundary_band():
     # A falling cube seen from above, with and without a shell of boundary-band particles 8 mm
     # outside it (M-PhyGs: volume ~ eps, not part of the object). The observed masks are the

@@ -540,9 +540,9 @@ class Identifier:
                 except SimulationDiverged as error:
                     failures += 1
                     adam.lr *= 0.5
-                    u, velocity = adam.undo(u, velocity)
-                    _LOG.warning("iteration %d diverged (%s); step undone, learning rates halved",
-                                 iteration, error)
+                    u, velocity, back = self._retreat(adam, u, velocity)
+                    _LOG.warning("iteration %d diverged (%s); %s, learning rates halved",
+                                 iteration, error, back)
                     continue
                 if start == 0 and length == n and loss < self.best[0]:
                     self.best = (loss, u.copy(), velocity.copy(), per.copy())
@@ -575,6 +575,22 @@ class Identifier:
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
         return FitResult(values, self.entries, u, velocity, loss, per, history, failures, search_s)
+
+    def _retreat(self, adam: _Adam, u: np.ndarray,
+                 velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+        """Where to go after a diverged iteration: (u, velocity, what was done).
+
+        Adam's last step is undone; if there is none (the point passed one window and diverged
+        on another, or a step was undone already), back to the lowest whole-window point seen,
+        else the search's: undoing nothing would try the same point again and again.
+        """
+        if adam.last.any():
+            return (*adam.undo(u, velocity), "step undone")
+        for (loss, best_u, best_velocity, _), label in ((self.best, "the best whole-window point"),
+                                                        ((0.0, *self.start, None), "the search's point")):
+            if math.isfinite(loss) and len(best_u) and not np.array_equal(best_u, u):
+                return best_u.copy(), best_velocity.copy(), f"back to {label}"
+        return u, velocity, "nothing to undo"
 
     def _values_of(self, u: np.ndarray) -> dict[str, float]:
         return {e.label: float(e.coordinate.to_theta(v)) for e, v in zip(self.entries, u, strict=True)}
