@@ -586,10 +586,11 @@ class Identifier:
         """
         if adam.last.any():
             return (*adam.undo(u, velocity), "step undone")
-        for (loss, best_u, best_velocity, _), label in ((self.best, "the best whole-window point"),
-                                                        ((0.0, *self.start, None), "the search's point")):
-            if math.isfinite(loss) and len(best_u) and not np.array_equal(best_u, u):
-                return best_u.copy(), best_velocity.copy(), f"back to {label}"
+        points = [("the best whole-window point", *self.best[1:3])] if math.isfinite(self.best[0]) else []
+        points.append(("the search's point", *self.start))  # empty before the search
+        for label, point_u, point_velocity in points:
+            if len(point_u) and not np.array_equal(point_u, u):
+                return point_u.copy(), point_velocity.copy(), f"back to {label}"
         return u, velocity, "nothing to undo"
 
     def _values_of(self, u: np.ndarray) -> dict[str, float]:

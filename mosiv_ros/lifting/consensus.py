@@ -52,8 +52,7 @@ def consensus(cloud: PointCloud, later: Sequence[PointCloud], max_removed: float
         cells = _cells(cloud.xyz[mine], size)
         kept = np.ones(len(mine), dtype=bool)
         for other in later:
-            other_sizes = np.asarray(other.fields.get(VOXEL_FIELD, np.zeros(len(other.xyz))))
-            theirs = (other.object_id == object_id) & np.isclose(other_sizes, size)
+            theirs = (other.object_id == object_id) & np.isclose(other.fields[VOXEL_FIELD], size)
             if not theirs.any():
                 continue
             agree = _agreeing(cells[kept], _cells(other.xyz[theirs], size))
