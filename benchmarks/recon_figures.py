@@ -12,10 +12,10 @@ size (largest edge of the particles' bounding box plus one particle). ``floor`` 
 distance for a perfect reconstruction: the voxels whose centres lie in the cubes the ground-truth
 particles stand for. ``nearer other`` is the largest fraction, over frames, of an object's voxels
 that lie nearer another object's particles than its own (separation at contact). Then lift the
-first complete frame and print each object's particle volume against the ground-truth volume
-(the recorder draws the solid the particles fill, so that is also what the cameras see), the
-lattice cells shared between objects (must be 0) and the milliseconds per frame of both stages on
-this machine.
+first complete frame and print each object's particle volume against the ground-truth volume and
+against the volume the recorder renders (the union of its splat balls above the floor: what the
+cameras can see; the balls themselves for the shapes scene), the lattice cells shared between
+objects (must be 0) and the milliseconds per frame of both stages on this machine.
 """
 
 from __future__ import annotations
@@ -33,9 +33,9 @@ from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
 from mosiv_ros.recon import reconstruct_recording
 from mosiv_ros.recon.carving import Lattice
-from mosiv_ros.recon.evaluation import chamfer
+from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
 from mosiv_ros.recon.reconstruct import Reconstructor
-from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth_particles
+from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 from mosiv_ros.synth.shapes import START_NS, make_shapes_recording, shapes_spheres
 
 SHAPES_SPACING = 0.003
@@ -69,16 +69,18 @@ def shapes_truth(recording) -> GroundTruthParticles:
 
 
 def bag_figures(bag: Path, voxel_size: float) -> dict:
-    return figures(str(bag), read_recording(bag), read_ground_truth_particles(bag), voxel_size)
+    return figures(str(bag), read_recording(bag), read_ground_truth_particles(bag), voxel_size,
+                   float(read_ground_truth(bag)["render"]["splat_radius"]))
 
 
 def shapes_figures(voxel_size: float) -> dict:
     recording = make_shapes_recording(n_frames=10, n_cameras=4, width=160, height=120)
-    return figures("shapes (4 cameras, 160x120)", recording, shapes_truth(recording), voxel_size)
+    return figures("shapes (4 cameras, 160x120)", recording, shapes_truth(recording), voxel_size, None)
 
 
-def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float) -> dict:
-    """Every figure of one recording."""
+def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float,
+            splat: float | None) -> dict:
+    """Every figure of one recording; ``splat``: the recorder's splat radius (None: exact shapes)."""
     side = float(np.cbrt(np.median(truth.volume)))
     result: dict = {"bag": name, "voxel_size": voxel_size, "objects": {}, "ms_per_frame": {}}
     for use_depth in (False, True):
@@ -113,12 +115,21 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
             first = int(np.argmin(np.abs(truth.stamps_ns - lifted.stamp_ns)))
             cells = np.floor(lifted.x / LiftingConfig().particle_spacing).astype(np.int64)
             _, counts = np.unique(cells, axis=0, return_counts=True)
+            floor = (recording.scene.ground or {}).get("height")
             result["lift"] = {"shared_cells": int((counts > 1).sum()), "frame": first, "objects": {
                 str(i): {"particles": int((lifted.object_id == i).sum()),
                          "volume_cm3": lifted.object_volume(i) * 1e6,
-                         "true_cm3": float(truth.volume[truth.object_id == i].sum()) * 1e6}
+                         "true_cm3": float(truth.volume[truth.object_id == i].sum()) * 1e6,
+                         "rendered_cm3": (union_of_balls_volume(
+                             truth.of_object(i)[first].astype(np.float64), splat, floor) * 1e6 if splat
+                             else _ball_volume(i) * 1e6)}
                 for i in lifted.object_ids}}
     return result
+
+
+def _ball_volume(object_id: int) -> float:
+    radius = next(s.radius for s in shapes_spheres() if s.id == object_id)
+    return 4.0 / 3.0 * np.pi * radius**3
 
 
 def report(result: dict) -> None:
@@ -136,7 +147,9 @@ def report(result: dict) -> None:
     lifted = result.get("lift", {})
     for object_id, row in lifted.get("objects", {}).items():
         print(f"  lifted object {object_id}: {row['particles']} particles, {row['volume_cm3']:.1f} cm^3 "
-              f"vs true {row['true_cm3']:.1f} cm^3 ({(row['volume_cm3'] / row['true_cm3'] - 1) * 100:+.1f}%)")
+              f"vs true {row['true_cm3']:.1f} cm^3 ({(row['volume_cm3'] / row['true_cm3'] - 1) * 100:+.1f}%), "
+              f"vs rendered {row['rendered_cm3']:.1f} cm^3 "
+              f"({(row['volume_cm3'] / row['rendered_cm3'] - 1) * 100:+.1f}%)")
     print(f"  lattice cells shared between objects: {lifted.get('shared_cells')}")
     print("  ms per frame: " + ", ".join(f"{k} {v:.0f}" for k, v in result["ms_per_frame"].items()))
 

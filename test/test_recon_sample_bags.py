@@ -1,8 +1,9 @@
 """Stages 1-2 on the recorder's sample bag (elastic ball thrown onto plastic clay) against its
 ground-truth particles: per-object Chamfer every frame, separation, lifted volumes.
 
-The recorder draws the solid the particles fill (``mosiv_ros.synth.render``), so the cameras see
-an object of its particles' volume: the lifted volumes are checked against it.
+The recorder draws each particle as a ball of ``splat_radius`` (0.8 particle spacings), so what
+the cameras see lies about 3 mm outside the solid the particles stand for: a 4 cm ball looks 24%
+larger than its particle volume. Volumes are checked against both.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
 from mosiv_ros.recon import Reconstructor, reconstruct_recording
-from mosiv_ros.recon.evaluation import chamfer
-from mosiv_ros.synth.ground_truth import read_ground_truth_particles
+from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
+from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "elastic_on_plastic"
 
@@ -51,14 +52,18 @@ def test_every_object_of_every_frame_is_within_the_chamfer_limit_and_apart(sampl
             assert nearer.mean() < (0.02 if use_depth else 0.08), (k, object_id)
 
 
-def test_lifted_volumes_are_within_8_percent_of_the_true_ones_and_never_overlap(sample, fused):
+def test_lifted_volumes_are_within_10_percent_of_what_the_cameras_see_and_never_overlap(sample, fused):
     recording, truth = sample
     lifted = lift_first_complete(fused, LiftingConfig(particle_spacing=0.004), recording.scene)
     assert lifted.stamp_ns == truth.stamps_ns[0]
+    splat = read_ground_truth(BAG)["render"]["splat_radius"]
     for object_id in (1, 2):
+        particles = truth.of_object(object_id)[0].astype(np.float64)
+        seen = union_of_balls_volume(particles, splat, floor=0.0)
         true = float(truth.volume[truth.object_id == object_id].sum())
         volume = lifted.object_volume(object_id)
-        assert abs(volume / true - 1) < 0.08, (object_id, volume, true)
+        assert abs(volume / seen - 1) < 0.10, (object_id, volume, seen)
+        assert 1.0 < volume / true < 1.35, (object_id, volume, true)
     cells = np.floor(lifted.x / 0.004).astype(np.int64)
     assert np.unique(cells, axis=0).shape[0] == len(cells)
     assert lifted.families == {1: "elastic", 2: "plastic"}
@@ -76,7 +81,7 @@ def test_hull_the_flying_ball_leaves_on_the_clay_in_the_lifted_frame_is_trimmed_
         farthest[frames] = cKDTree(clay).query(solid)[0].max()
     # In frame 0 the ball hides part of the clay's near side from one camera: 4 cm of phantom hull.
     assert farthest[0] > 0.03
-    assert farthest[2] < 0.012  # half a particle spacing plus a voxel
+    assert farthest[2] < 0.012  # half a particle spacing plus the splat and a voxel
 
 
 def test_a_camera_missing_from_the_whole_recording_is_reported_and_still_gives_every_object(sample):

@@ -72,47 +72,36 @@ def test_nearer_object_owns_the_pixel_where_the_view_lines_up_two_objects(pair):
     assert top.frames[0].depth[row, col] < top.T_world_optical[2, 3] - slab_top - 0.05
 
 
-def density(points, x, spacing):
-    """The particles' density at ``points``: sum of quadratic B-splines of width ``spacing``,
-    each particle one lattice cell (the recorder's volumes), summed directly over neighbours."""
-    out = np.zeros(len(points))
-    for i, near in enumerate(cKDTree(x).query_ball_point(points, 1.5 * np.sqrt(3) * spacing)):
-        r = np.abs((points[i] - x[near]) / spacing)
-        n = np.where(r < 0.5, 0.75 - r * r, np.where(r < 1.5, 0.5 * (1.5 - r) ** 2, 0.0))
-        out[i] = n.prod(axis=1).sum()
-    return out
-
-
-RHO_TOL = 0.03  # the renderer interpolates the density from a grid of spacing / 3
-
-
-def test_mask_and_depth_show_the_level_set_of_the_ground_truth_particles_on_every_ray(pair):
+def test_mask_and_depth_show_the_nearest_ground_truth_particle_ball_on_every_ray(pair):
     recording, truth, particles = pair
-    spacing = truth["render"]["particle_spacing"]
+    r = truth["render"]["splat_radius"]
     checked = 0
     for camera, frame, x in views(recording, particles):
-        x = x.astype(np.float64)
         origin, rays = world_rays(camera)
         mask, depth = frame.mask.ravel(), frame.depth.ravel().astype(np.float64)
+        tree = cKDTree(x)
         on_object = mask > 0
         points = origin + depth[on_object, None] * rays[on_object]
-        # on the density's level 1/2, and the nearest particle belongs to the pixel's object
-        assert np.all(np.abs(density(points, x, spacing) - 0.5) < RHO_TOL)
-        assert np.all(particles.object_id[cKDTree(x).query(points)[1]] == mask[on_object])
-        # before its hit (or anywhere, for a ray of no object), no ray enters the solid
-        for chunk in np.array_split(np.arange(len(rays)), 4):
-            reach = np.where(on_object[chunk], depth[chunk], np.where(np.isfinite(depth[chunk]), depth[chunk], 1.5))
-            s = np.linspace(0.0, 1.0, 400)[None, :] * (reach[:, None] - 1e-4)
-            samples = (origin + s[:, :, None] * rays[chunk, None, :]).reshape(-1, 3)
-            close = cKDTree(x).query(samples, distance_upper_bound=2 * spacing)[0] < np.inf
-            assert density(samples[close], x, spacing).max(initial=0.0) < 0.5 + RHO_TOL
+        distance, nearest = tree.query(points)
+        # on the surface of a ball of the pixel's own object, inside no ball
+        assert np.all(np.abs(distance - r) < TOL)
+        assert np.all(particles.object_id[nearest] == mask[on_object])
+        # everything else: no object ball comes closer than r to the ray before its hit (or ever)
+        others = np.flatnonzero(~on_object)
+        reach = np.where(np.isfinite(depth[others]), depth[others], np.inf)
+        for chunk in np.array_split(others, 8):
+            d = rays[chunk]
+            s = np.clip(((x - origin) @ d.T) / np.einsum("ij,ij->i", d, d), 0.0, reach[np.searchsorted(others, chunk)])
+            closest = origin + s.T[:, :, None] * d[:, None, :]
+            gap = np.linalg.norm(closest - x[None], axis=2)
+            assert gap.min() > r - TOL
         checked += 1
     assert checked == 4 * 6 - 1  # every camera and frame, 'late' but its last
 
 
 def test_pixels_of_no_object_lie_on_the_floor_or_the_gripper(pair):
     recording, truth, _ = pair
-    spacing = truth["render"]["particle_spacing"]
+    r = truth["render"]["splat_radius"]
     radius = PAIR["gripper"]["radius"]
     gripper = dict(recording.gripper_poses)
     for name in ("cam0", "cam1", "top"):
@@ -123,7 +112,7 @@ def test_pixels_of_no_object_lie_on_the_floor_or_the_gripper(pair):
             hit = (frame.mask.ravel() == 0) & np.isfinite(depth)
             points = origin + depth[hit, None].astype(np.float64) * rays[hit]
             on_floor = np.abs(points[:, 2]) < TOL
-            on_gripper = np.linalg.norm(points - gripper[frame.stamp_ns][:3, 3], axis=1) < radius + spacing
+            on_gripper = np.linalg.norm(points - gripper[frame.stamp_ns][:3, 3], axis=1) < radius + r + TOL
             assert np.all(on_floor | on_gripper)
             assert on_floor.mean() > 0.5
 

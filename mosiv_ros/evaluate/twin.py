@@ -29,11 +29,13 @@ from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.io.recording import Recording, match_frames
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
-from mosiv_ros.synth.render import Floor, ParticleSolid, render_view, surface_normals
+from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
 
 LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
 EMD_EVERY = 3
 """EMD (an exact assignment) on every third frame only."""
+SPLAT_RADIUS = 0.8
+"""Rendered particle radius in particle spacings, as the synthetic recorder draws them."""
 
 
 @dataclass
@@ -146,11 +148,11 @@ def _score_views(s: FrameScores, x: np.ndarray, prediction: Prediction, colours:
     labels = np.asarray(prediction.object_ids)[prediction.object_index]
     normals = surface_normals(x, prediction.object_index, spacing)
     albedo = np.stack([colours[i] for i in labels]) if len(labels) else np.zeros((0, 3))
-    solid = ParticleSolid(x, labels.astype(np.uint16), albedo, normals, spacing)
+    splats = Splats(x, labels.astype(np.uint16), albedo, normals, SPLAT_RADIUS * spacing)
     per_object: dict[int, list[float]] = {}
     for name, image in images.items():
         camera = recording.cameras[name]
-        rgb, mask, _ = render_view(camera.intrinsics, camera.T_world_optical, solid, floor)
+        rgb, mask, _ = render_view(camera.intrinsics, camera.T_world_optical, splats, floor)
         s.psnr[name] = psnr(rgb, image.rgb)
         s.ssim[name] = ssim(rgb, image.rgb)
         for object_id in prediction.object_ids:

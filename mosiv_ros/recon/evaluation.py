@@ -51,3 +51,20 @@ def chamfer_figure(object_id: int, stamp_ns: int, estimate: np.ndarray,
     """The ChamferFigure of one object's estimate against its ground truth."""
     cd, accuracy, completeness = chamfer(estimate, truth)
     return ChamferFigure(object_id, stamp_ns, cd, accuracy, completeness, cd / object_size(truth))
+
+
+def union_of_balls_volume(centres: np.ndarray, radius: float, floor: float | None = None,
+                          step: float = 0.001) -> float:
+    """Volume (m^3) of the union of balls of ``radius`` around ``centres``, above z = ``floor``.
+
+    The solid a particle-splatting renderer (the synthetic recorder's) shows: what a camera can
+    observe of particles, as opposed to the volume they stand for. Counted on a grid of ``step``.
+    """
+    lo, hi = centres.min(axis=0) - radius, centres.max(axis=0) + radius
+    if floor is not None:
+        lo[2] = max(lo[2], floor)
+    axes = [np.arange(lo[a] + step / 2, hi[a], step) for a in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    distance, _ = cKDTree(centres).query(grid, distance_upper_bound=radius)
+    return float(np.count_nonzero(distance <= radius)) * step**3
+

@@ -43,10 +43,13 @@ from mosiv_ros.synth.bodies import gripper_points
 from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration, simulator_effects
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
 from mosiv_ros.synth.layout import Layout, lay_out
-from mosiv_ros.synth.render import Floor, ParticleSolid, render_view, surface_normals
+from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
 from mosiv_ros.synth.scene_file import SceneSpec
 
 _LOG = logging.getLogger(__name__)
+
+SPLAT_RADIUS = 0.8
+"""Radius of a rendered particle ball, in particle spacings (> 1/sqrt(2): no see-through gaps)."""
 
 Progress = Callable[[str, int, int], None]
 """progress(phase, done, total), phase 'simulate' (frames) or 'render' (camera frames)."""
@@ -204,19 +207,19 @@ def render_cameras(layout: Layout, positions: np.ndarray, offsets: dict[str, flo
         labels = np.concatenate([labels, np.zeros(len(grip), dtype=labels.dtype)])
         albedo = np.concatenate([albedo, np.tile(spec.gripper.color, (len(grip), 1))])
 
-    def solid(frame: float) -> ParticleSolid:
+    def splats(frame: float) -> Splats:
         x = _at(positions, frame)
         if spec.gripper is not None:
             position, quaternion = layout.collider.pose(frame / fps)
             x = np.concatenate([x, grip @ Rotation.from_quat(quaternion).as_matrix().T + position])
-        return ParticleSolid(x, labels, albedo, surface_normals(x, labels, spacing), spacing)
+        return Splats(x, labels, albedo, surface_normals(x, labels, spacing), SPLAT_RADIUS * spacing)
 
     frames: dict[str, list[Frame]] = {name: [] for name in cams.names}
     total, done = (spec.n_frames + 1) * len(cams.names), 0
     for k in range(spec.n_frames + 1):
-        shared = solid(float(k))
+        shared = splats(float(k))
         for name, pose in zip(cams.names, cams.poses, strict=True):
-            view = solid(k + offsets[name] * fps) if name in offsets else shared
+            view = splats(k + offsets[name] * fps) if name in offsets else shared
             rgb, mask, depth = render_view(cams.intrinsics, pose, view, floor)
             frames[name].append(Frame(spec.stamp_ns(k), *_add_noise(layout, rgb, mask, depth, rng)))
             done += 1
@@ -271,8 +274,6 @@ def ground_truth_document(layout: Layout, settings: dict[str, Any], seed: int) -
                     "T_world_optical": dict(zip(cams.names, cams.poses, strict=True))},
         "noise": {"rgb_std": spec.noise.rgb_std, "depth_std": spec.noise.depth_std},
         "simulation": settings,
-        "render": {"particle_spacing": spec.simulation.particle_spacing,
-                   "surface": "level 1/2 of the particles' quadratic B-spline density of width "
-                              "particle_spacing (the solid they fill); a particle outside it: a ball "
-                              "of its own volume"},
+        "render": {"splat_radius": SPLAT_RADIUS * spec.simulation.particle_spacing,
+                   "surface": "union of balls of splat_radius around the particles"},
     }

@@ -9,32 +9,23 @@ physical: positions come from the simulator.
 
 Model:
 
-- Particles are drawn as the solid they fill (``ParticleSolid``), each label's on its own (two
-  objects in contact touch, they do not merge): the region where their density
-  rho(x) = sum_i (V_i / h^3) N((x - x_i) / h) reaches 1/2, with N the tensor-product quadratic
-  B-spline of width ``spacing`` h and V_i each particle's volume. On an undeformed lattice rho
-  is 1 inside and the level 1/2 lies half a spacing beyond the outer particles: a face of a
-  sampled box is drawn where the box's face is, and the drawn solid has the particles' volume
-  (a union of balls around the particles would look larger than the solid). rho is sampled on
-  a grid of h / 3 and interpolated; each ray marches it in steps of h / 4 from where it enters
-  the particles' box and refines the first crossing by bisection. A particle outside the level
-  set (a lone one, a thin spray) is drawn as a ball of its own volume instead, so nothing with
-  volume is invisible.
+- Particles are drawn as balls of one radius around their centres (``Splats``), ray-traced
+  exactly: each ball is intersected with the rays of the pixels in its screen footprint, and a
+  z-buffer keeps the nearest hit. The visible surface of an object is thus the union of its
+  particles' balls (it lies about ``radius - spacing / 2`` outside the solid the particles fill).
 - The floor is the plane ``normal . x = height``, checkered in its own plane, a square of
   ``half_size`` around the point of the plane nearest to the origin.
-- Shading is Lambert (ambient + one directional light) with the normal and albedo of the particle
-  nearest the surface point; a particle's normal is the gradient of a Gaussian-weighted density
-  of its own group.
-- mask: the label of the particle nearest the surface point (object ids 1..K; 0 for the
-  floor, a gripper and the background); depth: 32FC1 metres along the optical z axis to the nearest surface, the floor
+- Shading is Lambert (ambient + one directional light) with per-particle normals: the gradient
+  of a Gaussian-weighted density of each particle's own group, so surfaces look smooth instead of
+  bumpy.
+- mask: the label of the nearest ball (object ids 1..K; 0 for the floor, a gripper and the
+  background); depth: 32FC1 metres along the optical z axis to the nearest surface, the floor
   included; NaN where the ray hits nothing (the ROS "no return").
 """
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -48,11 +39,7 @@ BACKGROUND_RGB = np.array([30, 34, 44], dtype=np.uint8)
 LIGHT_DIRECTION = np.array([0.4, 0.3, 1.0]) / np.linalg.norm([0.4, 0.3, 1.0])  # towards light
 AMBIENT = 0.3
 NEIGHBOURS = 16  # particles in a normal estimate
-GRID_DIVISIONS = 3  # density grid cells per particle spacing
-MARCH_STEP = 0.25  # ray-marching step, in particle spacings
-BISECTIONS = 6  # refinements of a crossing: to MARCH_STEP / 64 spacings
 _CANDIDATES_PER_BATCH = 2_000_000  # (pixel, ball) pairs tested at once
-_SAMPLES_PER_BATCH = 2_000_000  # ray samples evaluated at once
 
 
 @dataclass
@@ -85,100 +72,18 @@ class Floor:
 
 
 @dataclass
-class ParticleSolid:
-    """Particles to draw as the solid they fill (see the module docstring).
+class Splats:
+    """Balls of one ``radius`` (m) to draw.
 
     Centres ``x`` (M, 3) world, ``label`` (M,) mask ids, ``albedo`` (M, 3) 0..255, unit
-    ``normal`` (M, 3) world (for shading), ``spacing`` (m) the lattice spacing the particles were
-    sampled at, ``volume`` (M,) m^3 each (None: spacing^3 each).
+    ``normal`` (M, 3) world, used for shading.
     """
 
     x: np.ndarray
     label: np.ndarray
     albedo: np.ndarray
     normal: np.ndarray
-    spacing: float
-    volume: np.ndarray | None = None
-
-    @cached_property
-    def weight(self) -> np.ndarray:
-        """Each particle's volume in lattice cells, V_i / spacing^3 (M,)."""
-        if self.volume is None:
-            return np.ones(len(self.x))
-        return np.asarray(self.volume, dtype=np.float64) / self.spacing**3
-
-    @cached_property
-    def parts(self) -> list[_Part]:
-        """One solid per label: the particles with volume that carry it."""
-        parts = []
-        for label in np.unique(self.label):
-            index = np.flatnonzero((self.label == label) & (self.weight > 0))
-            if len(index):
-                density = Density(self.x[index], self.weight[index], self.spacing)
-                lone = index[density.rho(self.x[index]) < 0.5]
-                parts.append(_Part(index, density, cKDTree(self.x[index]), lone))
-        return parts
-
-
-@dataclass
-class _Part:
-    """One label's particles ``index``, their ``density``, search ``tree`` and ``lone`` ones.
-
-    ``lone``: those outside the level set, drawn as balls of their own volume.
-    """
-
-    index: np.ndarray
-    density: Density
-    tree: cKDTree
-    lone: np.ndarray
-
-
-def quadratic_bspline(r: np.ndarray) -> np.ndarray:
-    """The quadratic B-spline N(r), support |r| < 1.5, summing to 1 over any unit lattice."""
-    r = np.abs(r)
-    return np.where(r < 0.5, 0.75 - r * r, np.where(r < 1.5, 0.5 * (1.5 - r) ** 2, 0.0))
-
-
-class Density:
-    """The particles' density rho (module docstring) on a grid of ``spacing / GRID_DIVISIONS``.
-
-    ``rho(points)`` interpolates it trilinearly (0 outside the grid); ``lo`` and ``hi`` bound the
-    region where it can be non-zero.
-    """
-
-    def __init__(self, x: np.ndarray, weight: np.ndarray, spacing: float) -> None:
-        x = np.asarray(x, dtype=np.float64)
-        self.step = spacing / GRID_DIVISIONS
-        reach = 1.5 * spacing  # the kernel's support
-        self.lo = x.min(axis=0) - reach
-        self.hi = x.max(axis=0) + reach
-        origin = self.lo - 2 * self.step
-        self.origin = origin
-        self.shape = np.ceil((self.hi - origin) / self.step).astype(np.int64) + 3
-        nodes = np.arange(-math.ceil(1.5 * GRID_DIVISIONS), math.ceil(1.5 * GRID_DIVISIONS) + 2)
-        values = np.zeros(int(np.prod(self.shape)))
-        for chunk in np.array_split(np.arange(len(x)), 1 + len(x) // 20_000):
-            base = np.floor((x[chunk] - origin) / self.step).astype(np.int64)
-            index = base[:, :, None] + nodes  # (P, 3, K) node index per axis
-            w = quadratic_bspline((origin[None, :, None] + index * self.step - x[chunk, :, None]) / spacing)
-            flat = (index[:, 0, :, None, None] * self.shape[1] + index[:, 1, None, :, None]) * self.shape[2] \
-                + index[:, 2, None, None, :]
-            w3 = weight[chunk, None, None, None] * w[:, 0, :, None, None] * w[:, 1, None, :, None] \
-                * w[:, 2, None, None, :]
-            values += np.bincount(flat.ravel(), w3.ravel(), minlength=values.size)
-        self.values = values.reshape(self.shape)
-
-    def rho(self, points: np.ndarray) -> np.ndarray:
-        f = (points - self.origin) / self.step
-        i = np.floor(f).astype(np.int64)
-        t = f - i
-        inside = np.all((i >= 0) & (i < self.shape - 1), axis=-1)
-        i = np.where(inside[..., None], i, 0)
-        out = np.zeros(points.shape[:-1])
-        for corner in np.ndindex(2, 2, 2):
-            w = np.prod([t[..., a] if corner[a] else 1.0 - t[..., a] for a in range(3)], axis=0)
-            out += w * self.values[i[..., 0] + corner[0], i[..., 1] + corner[1], i[..., 2] + corner[2]]
-        return np.where(inside, out, 0.0)
+    radius: float
 
 
 def surface_normals(x: np.ndarray, groups: np.ndarray, spacing: float) -> np.ndarray:
@@ -212,12 +117,11 @@ def shade(albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
 
 
 def _nearest_balls(
-    intrinsics: CameraIntrinsics, centres: np.ndarray, radius: np.ndarray
+    intrinsics: CameraIntrinsics, centres: np.ndarray, radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel (H * W,): depth of the nearest ball along its ray (inf if none), that ball's index.
 
-    ``centres`` (M, 3) are in the optical frame, ``radius`` (M,). Balls not wholly in front of
-    the camera are skipped.
+    ``centres`` are in the optical frame. Balls not wholly in front of the camera are skipped.
     """
     K = intrinsics.K
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -225,11 +129,11 @@ def _nearest_balls(
     depth = np.full(w * h, np.inf)
     owner = np.full(w * h, -1, dtype=np.int64)
     ahead = np.flatnonzero(centres[:, 2] > radius * (1.0 + 1e-6))
-    c, r = centres[ahead], radius[ahead]
+    c = centres[ahead]
     u0 = np.rint(fx * c[:, 0] / c[:, 2] + cx).astype(np.int64)
     v0 = np.rint(fy * c[:, 1] / c[:, 2] + cy).astype(np.int64)
     # Footprint half-width: the ball's projected radius bound f r / (z - r), plus rounding.
-    half = np.ceil(max(fx, fy) * r / (c[:, 2] - r) + 0.5).astype(np.int64)
+    half = np.ceil(max(fx, fy) * radius / (c[:, 2] - radius) + 0.5).astype(np.int64)
     for size in np.unique(half):
         offsets = np.arange(-size, size + 1)
         du, dv = (a.ravel() for a in np.meshgrid(offsets, offsets))
@@ -245,7 +149,7 @@ def _nearest_balls(
             # |s d - centre|^2 = r^2: a s^2 - 2 b s + k = 0, nearest root (b - sqrt(b^2 - a k)) / a
             a = np.einsum("ij,ij->i", d, d)
             b = np.einsum("ij,ij->i", d, centre)
-            k = np.einsum("ij,ij->i", centre, centre) - r[ball] ** 2
+            k = np.einsum("ij,ij->i", centre, centre) - radius * radius
             disc = b * b - a * k
             hit = (disc >= 0) & (b > 0)
             if not hit.any():
@@ -260,76 +164,30 @@ def _nearest_balls(
     return depth, owner
 
 
-def _level_set_depth(density: Density, origin: np.ndarray, rays: np.ndarray, spacing: float) -> np.ndarray:
-    """Per ray (M,): ray parameter of the first point where rho reaches 1/2 (inf if none).
-
-    ``rays`` (M, 3) are world directions from ``origin``.
-    """
-    depth = np.full(len(rays), np.inf)
-    d = np.where(np.abs(rays) < 1e-12, 1e-12, rays)
-    a, b = (density.lo - origin) / d, (density.hi - origin) / d
-    near = np.maximum(np.minimum(a, b).max(axis=1), 0.0)
-    far = np.maximum(a, b).min(axis=1)
-    candidates = np.flatnonzero(far > near)
-    if len(candidates) == 0:
-        return depth
-    step = MARCH_STEP * spacing / np.linalg.norm(rays[candidates], axis=1)
-    count = np.ceil((far[candidates] - near[candidates]) / step).astype(np.int64) + 1
-    for chunk in np.array_split(np.arange(len(candidates)),
-                                1 + len(candidates) * int(count.max()) // _SAMPLES_PER_BATCH):
-        ray = candidates[chunk]
-        k = np.arange(int(count[chunk].max()))
-        s = near[ray, None] + step[chunk, None] * k
-        solid = density.rho(origin + s[:, :, None] * rays[ray, None, :]) >= 0.5
-        solid &= k < count[chunk, None]
-        hit = solid.any(axis=1)
-        first = solid.argmax(axis=1)[hit]
-        ray, hi = ray[hit], s[hit, first]
-        lo = np.maximum(hi - step[chunk][hit], near[ray])
-        for _ in range(BISECTIONS):
-            mid = 0.5 * (lo + hi)
-            inside = density.rho(origin + mid[:, None] * rays[ray]) >= 0.5
-            hi, lo = np.where(inside, mid, hi), np.where(inside, lo, mid)
-        depth[ray] = hi
-    return depth
-
-
 def render_view(
-    intrinsics: CameraIntrinsics, T_world_optical: np.ndarray, solid: ParticleSolid, floor: Floor | None
+    intrinsics: CameraIntrinsics, T_world_optical: np.ndarray, splats: Splats, floor: Floor | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb uint8 (H, W, 3), mask (H, W) uint8 or uint16, depth float32 (H, W)) of one camera."""
     R, t = T_world_optical[:3, :3], T_world_optical[:3, 3]
-    rays = pixel_rays(intrinsics) @ R.T  # world directions, optical z = 1: the parameter is depth
-    depth = np.full(len(rays), np.inf)
-    owner = np.full(len(rays), -1, dtype=np.int64)
-    for part in solid.parts:
-        part_depth = _level_set_depth(part.density, t, rays, solid.spacing)
-        nearer = part_depth < depth
-        depth[nearer] = part_depth[nearer]
-        owner[nearer] = part.index[part.tree.query(t + depth[nearer, None] * rays[nearer])[1]]
-    lone = np.concatenate([part.lone for part in solid.parts] + [np.zeros(0, dtype=np.int64)])
-    if len(lone):
-        radius = np.cbrt(3.0 * solid.weight[lone] / (4.0 * math.pi)) * solid.spacing
-        ball_depth, ball = _nearest_balls(intrinsics, (solid.x[lone] - t) @ R, radius)
-        nearer = ball_depth < depth
-        depth[nearer], owner[nearer] = ball_depth[nearer], lone[ball[nearer]]
+    rays = pixel_rays(intrinsics)
+    depth, owner = _nearest_balls(intrinsics, (splats.x - t) @ R, splats.radius)
     albedo = np.zeros((depth.size, 3))
     normal = np.zeros((depth.size, 3))
-    on_object = owner >= 0
-    albedo[on_object] = solid.albedo[owner[on_object]]
-    normal[on_object] = solid.normal[owner[on_object]]
+    on_ball = owner >= 0
+    albedo[on_ball] = splats.albedo[owner[on_ball]]
+    normal[on_ball] = splats.normal[owner[on_ball]]
     if floor is not None:
-        s, floor_albedo, floor_normal = floor.hit(t, rays)
+        s, floor_albedo, floor_normal = floor.hit(t, rays @ R.T)
         on_floor = s < depth
         depth[on_floor] = s[on_floor]
-        on_object &= ~on_floor
+        on_ball &= ~on_floor
         albedo[on_floor] = floor_albedo[on_floor]
         normal[on_floor] = floor_normal
     seen = np.isfinite(depth)
     rgb = np.where(seen[:, None], shade(albedo, normal), BACKGROUND_RGB)
-    dtype = np.uint8 if solid.label.size == 0 or solid.label.max() <= 255 else np.uint16
+    dtype = np.uint8 if splats.label.size == 0 or splats.label.max() <= 255 else np.uint16
     mask = np.zeros(depth.size, dtype=dtype)
-    mask[on_object] = solid.label[owner[on_object]]
+    mask[on_ball] = splats.label[owner[on_ball]]
     h, w = intrinsics.height, intrinsics.width
     return (
         rgb.round().astype(np.uint8).reshape(h, w, 3),
