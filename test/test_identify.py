@@ -114,6 +114,35 @@ def _cube_problem(true_params, guess, free, frames=15, observed_points=None, sta
     return problem, FitSettings(**{"curriculum": [6, 0], "iterations": 6, **settings})
 
 
+def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
+    # a top camera sees the true cube: the search's batched losses and a fit window's loss are
+    # the same function of the parameters (the search used to score the Chamfer term only)
+    problem, _ = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=6)
+    view = _camera_looking_down(1.2)
+    view.T_world_optical[:2, 3] = [0.2, 0.2]
+    obs = problem.observations
+    masks = []
+    for points in obs.points:
+        uv, _ = view.project(points[0])
+        mask = np.zeros((view.height, view.width), dtype=np.uint16)
+        cols, rows = np.rint(uv).astype(int).T
+        mask[np.clip(rows, 0, view.height - 1), np.clip(cols, 0, view.width - 1)] = 1
+        masks.append({"top": mask})
+    problem.observations = Observations(obs.frame_dt, obs.points, obs.object_ids, [view], masks)
+    losses = {}
+    for weight in (0.0, 0.1):
+        identifier = Identifier(problem, FitSettings(silhouette_weight=weight))
+        velocity = np.zeros((1, 6))
+        velocity[0, :3] = obs.initial_velocities()
+        u = identifier._pack()
+        identifier._apply(u, velocity)
+        whole = identifier._window_loss(0, obs.n_frames - 1, None, grad=False)[0]
+        searched = identifier.batch_losses(u[None], velocity, together=False)[0]
+        assert searched == pytest.approx(whole, rel=1e-6)
+        losses[weight] = searched
+    assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
+
+
 def _jelly_problem(true_params, guess, frames=15, observed_points=None, **settings):
     """A soft cube dropped so that it squashes and rebounds: E and nu show, friction barely."""
     return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **settings)

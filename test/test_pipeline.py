@@ -133,3 +133,19 @@ def test_twin_predicts_new_initial_conditions_and_swapped_materials(drop_bag):
     assert np.abs(soft[-1] - twin.predict(0.5).positions[-1]).max() > 0.005
     future = twin.future(0.4, frame_rate=5.0)
     assert future.times[0] == pytest.approx(twin.window_seconds) and np.allclose(np.diff(future.times), 0.2)
+
+
+def test_twin_predicts_the_solid_not_the_boundary_band(drop_bag):
+    # the lifted particles carry a band up to boundary_band outside the surface (volume ~0) for
+    # the M-PhyGs volumes; a prediction reports the particles inside the surface at the offset
+    prepared = prepare(drop_bag, RunConfig())
+    lifted = prepared.lifted
+    assert (lifted.sdf > 0).any()
+    for offset in (0.0, 0.004):
+        estimates = Estimates([ObjectEstimate(1, "jelly", "elastic",
+                                              {"E": 2e4, "nu": 0.3, "boundary_offset": offset})],
+                              stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
+        first = Twin(lifted, estimates, prepared.recording.scene, device="cpu").predict(0.1).positions[0]
+        solid = lifted.sdf + offset <= 0
+        assert len(first) == solid.sum()
+        assert np.allclose(first, lifted.x[solid], atol=1e-6)

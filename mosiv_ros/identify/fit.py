@@ -13,7 +13,8 @@ velocity) to its observations with Adam on the simulator's gradients:
   over a box, which for a material parameter is its prior range ``SEARCH_RANGES`` (a yield
   stress far above the true one leaves the loss flat, so no gradient finds the way down: the
   samples must land below it) and otherwise the initial value +- ``search_decades`` decades
-  (scale parameters) or 2 logit units. The best sample is kept; with per-object losses, so is
+  (scale parameters) or 2 logit units. Samples are scored by the objective Adam minimises
+  (Chamfer and silhouette terms). The best sample is kept; with per-object losses, so is
   the composite that takes each object's parameters from the sample that fits that object
   best (each object's loss depends mostly on its own parameters, so 32 samples search each
   object's few dimensions rather than all objects' together), whichever of the two fits
@@ -55,7 +56,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.identify.coordinates import Coordinate
-from mosiv_ros.identify.losses import geometry_loss, silhouette_losses
+from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, silhouette_object_losses
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
@@ -350,7 +351,10 @@ class Identifier:
 
     def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
                      frames: int | None = None, together: bool | None = None) -> np.ndarray:
-        """Geometry loss of each row of ``candidates`` (coordinate vectors, (B, P)).
+        """The fit's loss of each row of ``candidates`` (coordinate vectors, (B, P)).
+
+        The same objective as Adam's (weighted Chamfer and silhouette terms, mean over frames),
+        without gradients.
 
         ``together`` (default: on a GPU): all rows in one batched rollout, at the time step of
         the stiffest row; else one at a time, each at its own stable time step (on the CPU a
@@ -410,7 +414,7 @@ class Identifier:
             value, _, per = geometry_loss(traj[f, b, inside[b]].astype(np.float64),
                                           self.index[inside[b]], obs.points[f],
                                           s.per_object_loss, obs.trees(f))
-            return value, per
+            return s.chamfer_weight * value, s.chamfer_weight * per
 
         for f in range(1, frames + 1):
             obs.trees(f)  # built once, before the threads share them
@@ -420,6 +424,14 @@ class Identifier:
             scored = list(pool.map(frame_loss, jobs))
         total = np.array([value for value, _ in scored]).reshape(n, frames).mean(axis=1)
         per = np.stack([per for _, per in scored]).reshape(n, frames, -1).mean(axis=1)
+        if s.silhouette_weight > 0 and obs.masks:
+            for b in range(n):  # as _window_loss: the particles inside the surface
+                silhouette = s.silhouette_weight / frames * silhouette_object_losses(
+                    traj[1:frames + 1, b][:, inside[b]], self.index[inside[b]], obs.object_ids,
+                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.per_object_loss,
+                    self.torch_device)
+                total[b] += silhouette.sum()
+                per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
         return total, per
 
     def _search_box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

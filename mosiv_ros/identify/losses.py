@@ -134,33 +134,53 @@ def silhouette_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[
     ``SPLAT_BATCH`` splat-pixel pairs, in torch on ``device`` (the simulation's GPU, where
     there is one).
     """
+    per, grad = _silhouettes(x, object_index, object_ids, views, masks, splat_radius, per_object,
+                             device, grad=True)
+    return float(per.sum()), grad
+
+
+def silhouette_object_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
+                             views: list[View], masks: list[dict[str, np.ndarray]],
+                             splat_radius: float, per_object: bool = True,
+                             device: str = "cpu") -> np.ndarray:
+    """``silhouette_losses`` split by object (K,), without a gradient; (1,) if not ``per_object``."""
+    return _silhouettes(x, object_index, object_ids, views, masks, splat_radius, per_object,
+                        device, grad=False)[0]
+
+
+def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
+                 views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
+                 per_object: bool, device: str, grad: bool) -> tuple[np.ndarray, np.ndarray]:
     x = np.asarray(x, dtype=np.float64)
     budget = SPLAT_BATCH["cpu" if device == "cpu" else "cuda"]
     step = max(1, budget // (max(x.shape[1], 1) * (2 * 3 + 1) ** 2))  # 3-pixel splats typical
-    total, grad = 0.0, np.zeros_like(x)
-    with _torch_threads(device):
+    per, gradient = np.zeros(len(object_ids) if per_object else 1), np.zeros_like(x)
+    with _torch_threads(device), torch.set_grad_enabled(grad):
         for first in range(0, len(x), step):
             chunk = slice(first, first + step)
-            value, grad[chunk] = _silhouette_batch(x[chunk], object_index, object_ids, views,
-                                                   masks[chunk], splat_radius, per_object, device)
-            total += value
-    return total, grad
+            values, gradient[chunk] = _silhouette_batch(x[chunk], object_index, object_ids, views,
+                                                        masks[chunk], splat_radius, per_object,
+                                                        device, grad)
+            per += values
+    return per, gradient
 
 
 def _silhouette_batch(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
                       views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
-                      per_object: bool, device: str) -> tuple[float, np.ndarray]:
+                      per_object: bool, device: str, grad: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per group (each object, or all with the scene-level loss) the loss of frames ``x``; dL/dx."""
     n_frames = len(x)
     counts = np.array([sum(v.name in m for v in views) for m in masks], dtype=np.float64)
+    n_groups = len(object_ids) if per_object else 1
     if not counts.any():
-        return 0.0, np.zeros_like(x)
-    xt = torch.tensor(x, requires_grad=True, device=device)
+        return np.zeros(n_groups), np.zeros_like(x)
+    xt = torch.tensor(x, requires_grad=grad, device=device)
     index = torch.as_tensor(object_index, device=device)
     frame_weight = torch.as_tensor(np.divide(1.0, counts, out=np.zeros(n_frames), where=counts > 0),
                                    device=device)
     groups = ([(index == k, [object_ids[k]]) for k in range(len(object_ids))] if per_object
               else [(torch.ones_like(index, dtype=torch.bool), list(object_ids))])
-    total = torch.zeros((), dtype=torch.float64, device=device)
+    totals = [torch.zeros((), dtype=torch.float64, device=device) for _ in groups]
     for view in views:
         frames = [f for f in range(n_frames) if view.name in masks[f]]
         if not frames:
@@ -175,7 +195,7 @@ def _silhouette_batch(x: np.ndarray, object_index: np.ndarray, object_ids: list[
         sigma = torch.clamp(K[0, 0] * splat_radius / z, min=0.5)
         observed = torch.as_tensor(np.stack([masks[f][view.name] for f in frames]).astype(np.int64),
                                    device=device)
-        for mine, ids in groups:
+        for g, (mine, ids) in enumerate(groups):
             valid = front[:, mine]
             if not bool(valid.any()):
                 continue
@@ -186,11 +206,12 @@ def _silhouette_batch(x: np.ndarray, object_index: np.ndarray, object_ids: list[
             # frames where every pixel is another object's, or no particle is in view: nothing
             counted = (pixels > 0) & valid.any(dim=1)
             per_frame = ((soft - target).abs() * known).sum(dim=(1, 2)) / pixels.clamp(min=1)
-            total = total + (per_frame * counted * frame_weight[rows]).sum()
-    if not total.requires_grad:  # no particle in view, or nothing known about it
-        return 0.0, np.zeros_like(x)
-    total.backward()
-    return float(total.detach()), xt.grad.cpu().numpy()
+            totals[g] = totals[g] + (per_frame * counted * frame_weight[rows]).sum()
+    values = torch.stack(totals)
+    if not values.requires_grad:  # no gradient asked, or no particle in view
+        return values.detach().cpu().numpy(), np.zeros_like(x)
+    values.sum().backward()
+    return values.detach().cpu().numpy(), xt.grad.cpu().numpy()
 
 
 def silhouette_loss(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],

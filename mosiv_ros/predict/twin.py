@@ -37,7 +37,11 @@ PREDICTION_MARGIN = 0.25
 
 @dataclass
 class Prediction:
-    """Predicted particle positions (F, N, 3) at ``times`` (F,) seconds after ``start_ns``."""
+    """Predicted particle positions (F, N, 3) at ``times`` (F,) seconds after ``start_ns``.
+
+    The particles are those inside each object's estimated surface (the boundary band of the
+    simulation is left out).
+    """
 
     start_ns: int
     times: np.ndarray
@@ -102,6 +106,15 @@ class Twin:
         self.sim = Simulator(self.objects, particles, self.config)
         self.sim.params.update({k: v for k, v in estimates.scene.items() if k in self.sim.params})
         self.particles = particles
+        # what a prediction reports: the solid, not the boundary band (volume ~0, up to the band's
+        # width outside the surface) that the simulation carries for the M-PhyGs volumes
+        offset = np.array([offsets.get(i, 0.0) for i in ids])[particles.object_index]
+        solid = lifted.sdf + offset <= 0.0
+        for k in range(len(ids)):  # an object too thin to have a particle inside keeps them all
+            mine = particles.object_index == k
+            if not solid[mine].any():
+                solid[mine] = True
+        self.solid = solid
         self.velocity = np.array([by_id[i].velocity for i in ids], dtype=np.float64)
 
     @property
@@ -141,7 +154,7 @@ class Twin:
         v = velocity[index, :3] + np.cross(velocity[index, 3:], self.particles.x - centre[index])
         self.sim.set_initial_velocity(v)
         n_frames = max(1, math.ceil(seconds / self.config.frame_dt - 1e-9))
-        positions = self.sim.rollout(n_frames, progress=progress)[:, 0]
+        positions = self.sim.rollout(n_frames, progress=progress)[:, 0, self.solid]
         return Prediction(self.estimates.stamp_ns, np.arange(n_frames + 1) * self.config.frame_dt,
-                          positions.astype(np.float64), index, list(self.ids),
+                          positions.astype(np.float64), index[self.solid], list(self.ids),
                           [o.name for o in self.objects])
