@@ -104,6 +104,8 @@ class IdentifyConfig:
     search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.")
     search_rounds: int = _param(
         3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.")
+    search_starts: int = _param(
+        3, "Best points of the first search round that each go through the further rounds.")
     search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")
     uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")

@@ -18,9 +18,14 @@ velocity) to its observations with Adam on the simulator's gradients:
   the composite that takes each object's parameters from the sample that fits that object
   best (each object's loss depends mostly on its own parameters, so 32 samples search each
   object's few dimensions rather than all objects' together), whichever of the two fits
-  better. Then ``search_rounds`` more such rounds, each in a box 3x narrower than the last
-  around the best so far (samples that move every coordinate at once follow the valleys of
-  coupled parameters, such as E and nu, which one-coordinate-at-a-time passes stall in);
+  better. The ``search_starts`` best points of this first round are the starts: each then
+  goes through ``search_rounds`` more such rounds, each in a box 3x narrower than the last
+  around its best so far (samples that move every coordinate at once follow the valleys of
+  coupled parameters, such as E and nu, which one-coordinate-at-a-time passes stall in), and
+  the lowest end wins. Several starts keep other basins alive: coupled parameters can explain
+  the same motion twice (on elastic_on_plastic one start narrowed onto a clay yield stress of
+  456 Pa with a ground friction of 1.9, at a higher loss than the true 800 Pa and 0.5), and
+  the first round's best need not lie in the basin of lowest loss;
 - horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
   windows of h frames, up to ``windows`` of them spread over the sequence and taken in turn;
   the last stage (0) fits the whole sequence from frame 0;
@@ -59,7 +64,7 @@ from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, silhouette_object_losses
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
-from mosiv_ros.sim.errors import SimulationDiverged
+from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
 
 _LOG = logging.getLogger(__name__)
@@ -98,6 +103,7 @@ class FitSettings:
     splat_radius: float = 0.005
     search_samples: int = 32
     search_rounds: int = 3
+    search_starts: int = 1
     search_decades: float = 1.0
     search_frames: int = 0
 
@@ -448,38 +454,36 @@ class Identifier:
         return lo, hi
 
     def _best(self, current: np.ndarray, candidates: np.ndarray, velocity: np.ndarray,
-              groups: list[list[int]]) -> tuple[np.ndarray, float] | None:
-        """The best of ``current``, ``candidates`` and their per-object composite.
+              groups: list[list[int]], keep: int = 1) -> list[tuple[np.ndarray, float]]:
+        """The ``keep`` best of ``current``, ``candidates`` and their per-object composite.
 
         ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
         scored as ``batch_object_losses`` does by default (on a GPU in one batch, at the time
-        step of its stiffest row); the best of them, the composite and ``current`` are then
-        compared each at its own time step, as the gradient
-        fit will see them (the loss of one parameter set differs by up to 10 % between time
-        steps, more than a search step gains). None if every candidate diverged.
+        step of its stiffest row); the contenders (``current``, the composite and the ``keep``
+        best candidates) are then compared each at its own time step, as the gradient fit will
+        see them (the loss of one parameter set differs by up to 10 % between time steps, more
+        than a search step gains). Best first, as (u, loss); empty if every candidate diverged.
         """
         s = self.settings
         total, per = self.batch_object_losses(candidates, velocity, s.search_frames)
         if np.all(np.isnan(total)):
-            return None
-        best = candidates[int(np.nanargmin(total))]
-        composite = best.copy()
+            return []
+        ranked = [candidates[i] for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
+        composite = ranked[0].copy()
         if not np.all(np.isnan(per)):
             for k, columns in enumerate(groups):
                 if columns and not np.all(np.isnan(per[:, k])):
                     composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
         contenders = [current]
-        for u in (best, composite):
+        for u in [composite, *ranked]:
             if not any(np.allclose(u, c) for c in contenders):
                 contenders.append(u)
         if len(contenders) == 1:
-            return current.copy(), float(np.nanmin(total))
+            return [(current.copy(), float(np.nanmin(total)))]
         losses = self.batch_object_losses(np.array(contenders), velocity, s.search_frames,
                                           together=False)[0]
-        if np.all(np.isnan(losses)):
-            return None
-        pick = int(np.nanargmin(losses))
-        return contenders[pick].copy(), float(losses[pick])
+        order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
+        return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
 
     def _search(self, velocity: np.ndarray) -> np.ndarray:
         """Latin-hypercube rounds in ever narrower boxes (see the module docstring); return u."""
@@ -491,20 +495,32 @@ class Identifier:
                       for k in range(n_objects)]
         rng = np.random.default_rng(0)
         ranged = np.array([e.name in SEARCH_RANGES for e in self.entries])
-        for round_ in range(s.search_rounds + 1 if s.search_samples > 0 else 0):
-            half = 0.5 * (hi - lo) / 3.0**round_
-            box_lo, box_hi = (lo, hi) if round_ == 0 else (u - half, u + half)
+
+        def round_(centre: np.ndarray, number: int, keep: int) -> list[tuple[np.ndarray, float]]:
+            half = 0.5 * (hi - lo) / 3.0**number
+            box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
             box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
             box_hi = np.where(ranged, np.minimum(box_hi, hi), box_hi)
             # Latin hypercube: every coordinate's range cut into as many strata as samples,
             # one sample per stratum, strata paired at random across coordinates
-            strata = np.stack([rng.permutation(s.search_samples) for _ in u], axis=1)
+            strata = np.stack([rng.permutation(s.search_samples) for _ in centre], axis=1)
             unit = (strata + rng.random(strata.shape)) / s.search_samples
-            found = self._best(u, box_lo + (box_hi - box_lo) * unit, velocity, per_object)
-            if found is not None:
-                u = found[0]
-                _LOG.info("search round %d: best of %d samples, loss %.3g: %s", round_,
-                          s.search_samples, found[1], self._values_of(u))
+            return self._best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
+
+        if s.search_samples > 0:
+            # the first round's best points are the starts: each narrows on its own basin
+            starts = round_(u, 0, max(1, s.search_starts))
+            ends = []
+            for k, (start, loss) in enumerate(starts):
+                for number in range(1, s.search_rounds + 1):
+                    found = round_(start, number, 1)
+                    if found:
+                        start, loss = found[0]
+                _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
+                          self._values_of(start))
+                ends.append((loss, start))
+            if ends:
+                u = min(ends, key=lambda end: end[0])[1]
         self._apply(u, velocity)
         return u
 
@@ -544,9 +560,10 @@ class Identifier:
                 tick = time.perf_counter()
                 self._apply(u, velocity)
                 start = starts[iteration % len(starts)]
-                if start > 0 and (start not in anchor or iteration % s.resync_every == 0):
-                    anchor = self._anchor(starts)
                 try:
+                    if start > 0 and (start not in anchor or iteration % s.resync_every == 0):
+                        anchor = {}  # a diverging anchor rollout leaves none to reuse
+                        anchor = self._anchor(starts)
                     initial = self._resynced(anchor, start) if start > 0 else None
                     loss, du, dv, per = self._window_loss(start, length, initial, grad=True)
                 except SimulationDiverged as error:
@@ -571,22 +588,45 @@ class Identifier:
                     self.progress(record)
                 self._save_checkpoint(signature, u, velocity, adam, history, stage,
                                       iteration + 1, failures)
-        self._apply(u, velocity)
-        loss, _, _, per = self._window_loss(0, n, None, grad=False)
-        if history:  # Adam's last step need not be the best point over the whole window
-            self._apply(*self.start)
-            start_loss, _, _, start_per = self._window_loss(0, n, None, grad=False)
-            points = {"the search's result": (start_loss, *self.start, start_per),
-                      "the best whole-window iterate": self.best}  # its loss is known
-            for label, (other, other_u, other_velocity, other_per) in points.items():
-                if other < loss:
-                    _LOG.info("the gradient fit ended at loss %.3g, above %s's %.3g; keeping "
-                              "that", loss, label, other)
-                    u, velocity, loss, per = other_u, other_velocity, other, other_per
-            self._apply(u, velocity)
+        u, velocity, loss, per = self._final(u, velocity, bool(history))
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
         return FitResult(values, self.entries, u, velocity, loss, per, history, failures, search_s)
+
+    def _final(self, u: np.ndarray, velocity: np.ndarray,
+               iterated: bool) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+        """The fit's result: (u, velocity, whole-window loss, per-object losses), applied.
+
+        After gradient steps (``iterated``) the lowest of Adam's last step, the search's result
+        and the best whole-window iterate: the last step need not be the best point over the
+        whole window, and nothing has simulated it yet, so it may diverge (a point that does
+        loses to the others rather than ending the fit).
+        """
+        n = self.problem.observations.n_frames - 1
+        candidates = {"Adam's last step": (u, velocity)}
+        if iterated:
+            candidates["the search's result"] = self.start
+        points = {}
+        for label, (point_u, point_velocity) in candidates.items():
+            self._apply(point_u, point_velocity)
+            try:
+                loss, _, _, per = self._window_loss(0, n, None, grad=False)
+            except SimulationDiverged as error:
+                if not iterated:
+                    raise
+                _LOG.warning("%s diverged over the whole window (%s)", label, error)
+                continue
+            points[label] = (loss, point_u, point_velocity, per)
+        if iterated:
+            points["the best whole-window iterate"] = self.best  # its loss is known
+        label = min(points, key=lambda key: points[key][0])
+        loss, u, velocity, per = points[label]
+        if not math.isfinite(loss):
+            raise SimulationError("every point the fit reached diverged over the whole window")
+        if label != "Adam's last step":
+            _LOG.info("keeping %s (loss %.3g) over the gradient fit's end", label, loss)
+        self._apply(u, velocity)
+        return u, velocity, loss, per
 
     def _retreat(self, adam: _Adam, u: np.ndarray,
                  velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:

@@ -61,7 +61,8 @@ def fit_settings(config: IdentifyConfig) -> FitSettings:
         chamfer_weight=config.chamfer_weight, silhouette_weight=config.silhouette_weight,
         per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
         windows=config.windows, search_samples=config.search_samples,
-        search_rounds=config.search_rounds, search_frames=config.search_frames)
+        search_rounds=config.search_rounds,
+        search_starts=config.search_starts, search_frames=config.search_frames)
 
 
 def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
