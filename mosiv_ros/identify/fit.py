@@ -37,7 +37,8 @@ velocity) to its observations with Adam on the simulator's gradients:
 - the result is the lowest whole-window loss among the search's point, the whole-sequence
   stage's iterates and Adam's last step (a windowed stage's objective is not the whole window's,
   and Adam's last step need not be its best);
-- a diverging rollout does not end the fit: the step is undone and the learning rate halved;
+- a diverging rollout (a window's or the anchor's) does not end the fit: the step is undone
+  and the learning rate halved; a last step that diverges loses to the other points;
 - with a checkpoint directory the state is written after every iteration and a rerun of the
   same problem resumes from it.
 
