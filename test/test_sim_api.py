@@ -55,6 +55,18 @@ def test_particles_outside_the_domain_are_refused_naming_the_object():
               dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
 
 
+
+def test_non_finite_initial_velocities_and_volumes_are_refused():
+    sim = falling_ball("elastic", {"E": 3e4})
+    v = np.zeros((sim.n_particles, 3))
+    v[3, 1] = np.nan
+    with pytest.raises(ParameterError, match="initial velocities must be finite"):
+        sim.set_initial_velocity(v)
+    with pytest.raises(ParameterError, match="volumes must be finite"):
+        sim.set_volume(np.full(sim.n_particles, np.inf))
+    sim.set_initial_velocity(np.ones(3))  # a finite one is taken, for every particle
+    assert np.allclose(sim.v0.numpy(), 1.0)
+
 @wp.kernel
 def _anti_drag(m: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                rate: wp.array(dtype=float), a: wp.array(dtype=wp.vec3)):

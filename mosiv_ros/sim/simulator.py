@@ -390,6 +390,8 @@ class Simulator:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
         v = np.broadcast_to(np.asarray(v, dtype=np.float32),
                             (self.n_batch, self.n_particles, 3))
+        if not np.all(np.isfinite(v)):
+            raise ParameterError("initial velocities must be finite")
         self.v0.assign(np.ascontiguousarray(v).reshape(-1, 3))
 
     def set_volume(self, volume: np.ndarray) -> None:
