@@ -175,7 +175,7 @@ def _params_file(tmp_path, fast_params):
     params = yaml.safe_load(fast_params.read_text())
     params["identify_node"]["ros__parameters"].update(
         {k: getattr(FIT, k) for k in ("curriculum", "iterations", "search_samples", "search_rounds",
-                                      "device")})
+                                      "search_starts", "device")})
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
