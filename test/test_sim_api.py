@@ -55,7 +55,6 @@ def test_particles_outside_the_domain_are_refused_naming_the_object():
               dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
 
 
-
 def test_non_finite_initial_velocities_and_volumes_are_refused():
     sim = falling_ball("elastic", {"E": 3e4})
     v = np.zeros((sim.n_particles, 3))
