@@ -66,6 +66,7 @@ def test_non_finite_initial_velocities_and_volumes_are_refused():
     sim.set_initial_velocity(np.ones(3))  # a finite one is taken, for every particle
     assert np.allclose(sim.v0.numpy(), 1.0)
 
+
 @wp.kernel
 def _anti_drag(m: wp.array(dtype=float), p: wp.array(dtype=wp.vec3),
                rate: wp.array(dtype=float), a: wp.array(dtype=wp.vec3)):
