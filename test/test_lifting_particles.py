@@ -58,7 +58,7 @@ def test_a_one_voxel_thin_plate_and_rod_are_not_eroded():
     np.testing.assert_allclose(same.object_volume(1), len(thin) * VOXEL**3, rtol=1e-3)
     # On a finer lattice every observed voxel still holds solid particles.
     lifted = lift(observed(thin), FINE, SCENE)
-    solid = lifted.x[lifted.sdf < 0]
+    solid = lifted.x[lifted.sdf <= 0]
     distance, _ = cKDTree(solid).query(thin, p=np.inf)
     assert np.all(distance <= VOXEL / 2)
 
@@ -69,9 +69,38 @@ def test_on_a_lattice_coarser_than_the_voxels_volumes_hold_and_thin_parts_stay_o
     assert abs(lifted.object_volume(1) / (4 / 3 * math.pi * 0.05**3) - 1) < 0.1
     plate = voxelised(lambda p: np.ones(len(p), bool), (0.0, 0.0, 0.1), (0.1, 0.1, 0.1 + VOXEL))
     thin = lift(observed(plate), coarse, SCENE)
-    solid = thin.x[thin.sdf < 0]
+    solid = thin.x[thin.sdf <= 0]
     assert len(solid) and np.all(cKDTree(solid).query(plate, p=np.inf)[0] <= 0.01)
     assert np.ptp(solid[:, 2]) < 1e-9  # one cell thick, not grown
+
+
+@pytest.mark.parametrize("shift", [0.0, VOXEL])
+def test_on_a_lattice_coarser_than_the_voxels_a_box_is_lifted_where_it_is(shift):
+    # With shift = one voxel every face lies on cell centres: each face cell is half covered,
+    # and the volume and centre must not depend on how such ties fall.
+    lo, hi = np.array([0.0, 0.0, 0.1]) + shift, np.array([0.06, 0.04, 0.16]) + shift
+    box = voxelised(lambda p: np.ones(len(p), bool), lo, hi)
+    lifted = lift(observed(box), LiftingConfig(particle_spacing=0.01), SCENE)
+    volumes = lifted.volumes()
+    centre = (volumes[:, None] * lifted.x).sum(axis=0) / volumes.sum()
+    np.testing.assert_allclose(centre, (lo + hi) / 2, atol=1e-3)
+    assert abs(volumes.sum() / np.prod(hi - lo) - 1) < 0.1
+
+
+def test_on_a_lattice_coarser_than_the_voxels_signed_distances_follow_the_voxels():
+    centre, radius = np.array([0.01, -0.02, 0.2]), 0.04
+    lifted = lift(observed(ball(centre, radius)), LiftingConfig(particle_spacing=0.01), SCENE)
+    solid = lifted.sdf <= 0
+    true = np.linalg.norm(lifted.x - centre, axis=1) - radius  # to the ball, negative inside
+    near = solid & (true > -0.01)
+    # to within a voxel, not a cell (every outermost cell at -h/2 would be up to 1 cm off)
+    assert near.sum() > 50
+    assert np.abs(lifted.sdf[near] - np.minimum(true[near], 0.0)).max() <= VOXEL
+    # so the boundary offset moves the surface in sub-cell steps: the lifted volume changes
+    # smoothly with it instead of a whole layer at a time
+    true_volume = 4 / 3 * math.pi * radius**3
+    volumes = [lifted.object_volume(1, {1: o}) / true_volume for o in np.arange(0.0, 0.0051, 0.001)]
+    assert np.all(np.diff(volumes) < 0) and np.all(-np.diff(volumes) < 0.25)
 
 
 def test_density_refinement_fills_a_pinhole_and_a_one_cell_crack():
@@ -81,11 +110,11 @@ def test_density_refinement_fills_a_pinhole_and_a_one_cell_crack():
     crack = np.isclose(cube[:, 0], 0.0175) & inner  # a one-cell-thick fissure inside the cube
     holed = cube[~pinhole & ~crack]
     lifted = lift(observed(holed), LiftingConfig(particle_spacing=VOXEL), SCENE)
-    solid = lifted.x[lifted.sdf < 0]
+    solid = lifted.x[lifted.sdf <= 0]
     assert cKDTree(solid).query([0.0325, 0.0325, 0.0325])[0] < 1e-6
     assert np.all(cKDTree(solid).query(cube[crack])[0] < 1e-6)
     unrefined = lift(observed(holed), LiftingConfig(particle_spacing=VOXEL, density_iterations=0), SCENE)
-    assert cKDTree(unrefined.x[unrefined.sdf < 0]).query([0.0325, 0.0325, 0.0325])[0] > 1e-3
+    assert cKDTree(unrefined.x[unrefined.sdf <= 0]).query([0.0325, 0.0325, 0.0325])[0] > 1e-3
 
 
 def test_interpenetrating_objects_get_disjoint_supports_split_between_them():
@@ -97,8 +126,8 @@ def test_interpenetrating_objects_get_disjoint_supports_split_between_them():
     xa, xb = lifted.x[lifted.object_id == 1], lifted.x[lifted.object_id == 2]
     assert cKDTree(xb).query(xa)[0].min() >= H * (1 - 1e-9)
     # The lens goes half to each (equal balls): the interface is the bisecting plane x = 4 cm.
-    solid_a = xa[lifted.sdf[lifted.object_id == 1] < 0]
-    solid_b = xb[lifted.sdf[lifted.object_id == 2] < 0]
+    solid_a = xa[lifted.sdf[lifted.object_id == 1] <= 0]
+    solid_b = xb[lifted.sdf[lifted.object_id == 2] <= 0]
     assert solid_a[:, 0].max() < 0.04 + H and solid_b[:, 0].min() > 0.04 - H
     assert abs(lifted.object_volume(1) / lifted.object_volume(2) - 1) < 0.03
     # Band particles never reach into the other object: those of a near b are outside b's solid.
@@ -116,7 +145,7 @@ def test_touching_objects_lifted_from_reconstruction_keep_their_volume_and_never
     cells = np.floor(lifted.x / H).astype(np.int64)
     assert np.unique(cells, axis=0).shape[0] == len(cells)
     left, right = spheres[0], spheres[1]
-    solid_left = lifted.x[(lifted.object_id == left.id) & (lifted.sdf < 0)]
+    solid_left = lifted.x[(lifted.object_id == left.id) & (lifted.sdf <= 0)]
     assert np.all(np.linalg.norm(solid_left - right.centre(0.0), axis=1) > right.radius - H)
 
 

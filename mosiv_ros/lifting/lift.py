@@ -14,7 +14,10 @@ multi-object lifting with M-PhyGs boundary handling:
    never overlap;
 4. signed distances d_i are recomputed from each object's final inside cells, so the contact
    interface is part of its surface, and band cells that now reach into another object are gone;
-   nothing is kept below a declared ground plane;
+   where the voxels are finer than the lattice, an inside cell's d_i is also no larger than its
+   distance to the voxels' own surface (capped at 0), so the surface lies to within a voxel, not
+   a cell, and the boundary offset peels it in sub-cell steps (lattice distances alone put every
+   outermost inside cell at -h/2); nothing is kept below a declared ground plane;
 5. every particle carries V_i = V_g (sigmoid(-beta (d_i + o_s)) + eps) (M-PhyGs supplement,
    Eq. 1), V_g = h^3, with a boundary offset o_s per segment (here: per object, zero until the
    identifier optimises it), its object id, segment and material family.
@@ -37,7 +40,7 @@ from mosiv_ros.config import LiftingConfig
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene
 from mosiv_ros.lifting.consensus import consensus
-from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance
+from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance, voxel_surface_distance
 from mosiv_ros.recon.reconstruct import VOXEL_FIELD, ObservedFrame, ground_plane
 
 _LOG = logging.getLogger(__name__)
@@ -151,6 +154,7 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         raise ValueError(f"observed cloud at stamp {cloud.stamp_ns} ns has no occupied voxel")
     margin = config.boundary_band + 2 * h
     claims = []  # per object: (keys, sdf) of every cell it claims
+    surface = []  # per object: the voxel-resolution signed distance of those cells
     for object_id in ids:
         mine = voxel & (cloud.object_id == object_id)
         centres, size = cloud.xyz[mine].astype(np.float64), float(sizes[mine].max())
@@ -160,6 +164,11 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         sdf = signed_distance(inside, h)
         cells = np.argwhere(sdf < config.boundary_band)
         claims.append((_keys(box.lo + cells), sdf[tuple(cells.T)]))
+        if size < h:
+            surface.append(voxel_surface_distance(centres, size, box, config.density_iterations,
+                                                  config.density_threshold)[tuple(cells.T)])
+        else:
+            surface.append(np.full(len(cells), -np.inf))
     owner = _assign(claims)
     ground = ground_plane(scene)
     x, object_id, sdf, warnings = [], [], [], []
@@ -175,7 +184,11 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         box = Box.of_cells(inside_cells, margin, h)
         grid = np.zeros(box.shape, dtype=bool)
         grid[tuple((inside_cells - box.lo).T)] = True
-        final = signed_distance(grid, h)[tuple((cells - box.lo).T)]
+        # inside cells: how deep, to within a voxel where the voxels are finer than the lattice
+        # (at most 0, so every inside cell stays inside at offset 0 and thin parts are kept);
+        # the contact interface, cells given up to another object and the band: to within a cell
+        final = np.maximum(signed_distance(grid, h)[tuple((cells - box.lo).T)],
+                           np.minimum(surface[k][owner[k]], 0.0))
         keep = final < config.boundary_band
         if ground is not None:  # nothing below a declared ground, band particles included
             keep &= (cells + 0.5) * h @ ground[0] >= ground[1]
