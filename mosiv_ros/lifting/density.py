@@ -74,12 +74,11 @@ def occupancy_on_lattice(voxel_centres: np.ndarray, voxel_size: float, box: Box)
         grid = occupied[np.ix_(*(np.maximum(s, 0) for s in slabs))]
         grid &= (slabs[0] >= 0)[:, None, None] & (slabs[1] >= 0)[None, :, None] & (slabs[2] >= 0)[None, None, :]
     else:
-        grid = np.zeros(box.shape, dtype=bool)
         holding = np.floor(voxel_centres / box.h).astype(np.int64) - box.lo
         inside = np.all((holding >= 0) & (holding < np.asarray(box.shape)), axis=1)
         coverage = np.zeros(box.shape, dtype=np.float64)
         np.add.at(coverage, tuple(holding[inside].T), (voxel_size / box.h) ** 3)
-        grid |= coverage >= 0.5 - 1e-6  # a tie (half covered) is covered; voxel sizes come as float32
+        grid = coverage >= 0.5 - 1e-6  # a tie (half covered) is covered; voxel sizes come as float32
         # a part thinner than half a cell (a plate, a rod) has no such cell: keep the cells it
         # touches where no neighbour is inside, so it is not eroded away
         # (no neighbour in any of the 26 directions: a rim cell touching the inside only
