@@ -1,0 +1,188 @@
+"""The fit's objective around a point of a synthetic recording: what the data pin down, and where.
+
+    python benchmarks/objective_scan.py bags/elastic_on_plastic --at truth \\
+        --offset ball=0.004 --offset clay=0.003 --scan ball.nu=0.1,0.2,0.3,0.4 \\
+        --out out/objective_scan.json
+
+Builds the fit problem as ``mosiv run`` does (reconstruction, lifting, the first 70 % of the
+frames; ``--params-file`` gives the node parameters) and evaluates the identifier's own objective
+(``Identifier.batch_object_losses``: Chamfer and silhouette terms, mean over the fitted frames;
+on the CPU each row at its own stable time step) at a base point, then along one entry at a time
+from it (``--scan ball.nu=0.1,0.2``; entries are named as the fit names them: ``ball.E``,
+``ground.friction``, ``clay.boundary_offset``).
+
+The base point is the recording's ground truth (``--at truth``: parameters and initial
+velocities; boundary offsets 0 unless ``--offset``) or an estimates file (``--at
+out/run/estimates.yaml``: parameters, boundary offsets, velocities). ``--set name=value``
+overrides an entry, ``--velocity truth`` takes the true initial velocities instead of the
+estimated ones. Two switches ask what the estimated geometry and the assumed density cost:
+``--true-particles`` (all objects, or ``--true-particles cube``) starts those objects from the
+recorder's own particles at the fit's first frame instead of the lifted ones, and ``--density
+truth`` (or ``--density sand=1600``) simulates objects at their true density instead of the
+declared or default one the fit uses (density is not fitted).
+
+Writes JSON: the options, the base point, and per row the whole loss and each object's share.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_ros.cli import run_config
+from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.fit import Identifier
+from mosiv_ros.identify.problem import build_problem, views_of
+from mosiv_ros.identify.run import fit_settings, problem_options
+from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.pipeline import prepare
+from mosiv_ros.report import jsonable
+from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
+
+
+def with_true_particles(lifted: LiftedParticles, truth: GroundTruthParticles,
+                        object_ids: list[int]) -> LiftedParticles:
+    """``lifted`` with the particles of ``object_ids`` replaced by the recorder's at its stamp."""
+    frame = np.flatnonzero(truth.stamps_ns == lifted.stamp_ns)
+    if not len(frame):
+        raise SystemExit(f"the recording's ground truth has no frame at the lifted stamp {lifted.stamp_ns}")
+    volume = np.unique(truth.volume[np.isin(truth.object_id, object_ids)])
+    if not np.allclose(volume, lifted.lattice_volume, rtol=1e-4):
+        raise SystemExit(f"the recorder's particle volumes {volume} m^3 differ from the lifting's lattice "
+                         f"volume {lifted.lattice_volume} m^3: give lifting_node a particle_spacing equal "
+                         "to the recording's")
+    keep = ~np.isin(lifted.object_id, object_ids)
+    parts = {"x": [lifted.x[keep]], "object_id": [lifted.object_id[keep]],
+             "segment": [lifted.segment[keep]], "material": [lifted.material[keep]],
+             "sdf": [lifted.sdf[keep]]}
+    for object_id in object_ids:
+        mine = truth.object_id == object_id
+        n = int(mine.sum())
+        code = lifted.material[lifted.object_id == object_id][0]
+        parts["x"].append(truth.positions[frame[0], mine].astype(np.float64))
+        parts["object_id"].append(np.full(n, object_id, dtype=lifted.object_id.dtype))
+        parts["segment"].append(np.full(n, object_id, dtype=lifted.segment.dtype))
+        parts["material"].append(np.full(n, code, dtype=lifted.material.dtype))
+        parts["sdf"].append(np.full(n, -1.0))  # deep inside: full volume at any offset
+    return dataclasses.replace(lifted, **{key: np.concatenate(value) for key, value in parts.items()})
+
+
+def pairs(items: list[str], what: str) -> dict[str, str]:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise SystemExit(f"{what} {item!r}: expected name=value")
+        out[name] = value
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("bag", type=Path)
+    parser.add_argument("--at", default="truth", help="'truth' or an estimates YAML file")
+    parser.add_argument("--scan", action="append", default=[], help="entry=v1,v2,... (repeatable)")
+    parser.add_argument("--set", action="append", default=[], help="entry=value (repeatable)")
+    parser.add_argument("--offset", action="append", default=[], help="object=metres (repeatable)")
+    parser.add_argument("--velocity", choices=("base", "truth"), default="base")
+    parser.add_argument("--true-particles", nargs="?", const="all", default="",
+                        help="'all' or comma-separated object names")
+    parser.add_argument("--density", action="append", default=[], help="'truth' or object=kg/m^3")
+    parser.add_argument("--params-file", type=Path, default=Path("config/demo.yaml"))
+    parser.add_argument("--holdout", type=float, default=0.3)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", type=Path, default=Path("out/objective_scan.json"))
+    args = parser.parse_args()
+
+    truth = read_ground_truth(args.bag)
+    true_objects = {o["name"]: o for o in truth["objects"]}
+    config = run_config(args.params_file, args.device)
+    prepared = prepare(args.bag, config)
+    lifted = prepared.lifted
+    if args.true_particles:
+        names = list(true_objects) if args.true_particles == "all" else args.true_particles.split(",")
+        unknown = sorted(set(names) - set(true_objects))
+        if unknown:
+            raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(true_objects)})")
+        lifted = with_true_particles(lifted, read_ground_truth_particles(args.bag),
+                                     [true_objects[n]["id"] for n in names])
+    window = max(2, int(round(len(prepared.frames) * (1 - args.holdout))))
+    views = views_of(prepared.recording)
+    problem = build_problem(prepared.frames[:window], lifted, prepared.recording.scene, views,
+                            prepared.recording.gripper_poses, problem_options(config.identify, views))
+    problem.sim_config.device = args.device
+    densities = {o.name: str(true_objects[o.name]["params"]["density"]) for o in problem.objects} \
+        if args.density == ["truth"] else pairs(args.density, "--density")
+    for obj in problem.objects:
+        if obj.name in densities:
+            obj.params["density"] = float(densities.pop(obj.name))
+    if densities:
+        raise SystemExit(f"--density: no object {sorted(densities)}")
+    identifier = Identifier(problem, fit_settings(config.identify))
+    labels = [entry.label for entry in identifier.entries]
+
+    # the base point: parameters, offsets and velocities
+    values = {f"ground.{k}": v for k, v in truth.get("ground", {}).items() if k == "friction"}
+    for name, obj in true_objects.items():
+        values.update({f"{name}.{k}": v for k, v in obj["params"].items()})
+    velocity = {name: list(obj["velocity"]) + list(obj["angular_velocity"])
+                for name, obj in true_objects.items()}
+    if args.at != "truth":
+        estimates = Estimates.read(args.at)
+        values.update(estimates.scene)
+        for obj in estimates.objects:
+            values.update({f"{obj.name}.{k}": v for k, v in obj.params.items()})
+            if args.velocity == "base":
+                velocity[obj.name] = list(obj.velocity)
+    values.update({f"{k}.boundary_offset": float(v) for k, v in pairs(args.offset, "--offset").items()})
+    values.update({k: float(v) for k, v in pairs(args.set, "--set").items()})
+    missing = [label for label in labels if label not in values and not label.endswith(".boundary_offset")]
+    if missing:
+        raise SystemExit(f"no base value for {missing}: give them with --set")
+    base = np.array([e.coordinate.to_u(values.get(e.label, 0.0)) for e in identifier.entries])
+    v0 = np.array([velocity[obj.name] for obj in problem.objects], dtype=np.float64)
+
+    rows, named = [base], [(None, None)]
+    for name, listed in pairs(args.scan, "--scan").items():
+        if name not in labels:
+            raise SystemExit(f"--scan {name}: not a fitted entry of this problem ({', '.join(labels)})")
+        i = labels.index(name)
+        for value in map(float, listed.split(",")):
+            row = base.copy()
+            row[i] = identifier.entries[i].coordinate.to_u(value)
+            rows.append(row)
+            named.append((name, value))
+    print(f"{len(rows)} rows over {window - 1} frames on {args.device} ...", flush=True)
+    tick = time.perf_counter()
+    total, per = identifier.batch_object_losses(np.array(rows), v0)
+    seconds = time.perf_counter() - tick
+    names = [obj.name for obj in problem.objects]
+    results = [{"entry": entry, "value": value, "loss": float(t),
+                "objects": dict(zip(names, map(float, p), strict=True))}
+               for (entry, value), t, p in zip(named, total, per, strict=True)]
+    print(f"{'entry':28s} {'value':>10s} {'loss x1e5':>10s}  " + " ".join(f"{n:>9s}" for n in names))
+    for r in results:
+        value = "" if r["value"] is None else f"{r['value']:g}"
+        print(f"{r['entry'] or 'base':28s} {value:>10s} {r['loss'] * 1e5:10.2f}  "
+              + " ".join(f"{v * 1e5:9.2f}" for v in r["objects"].values()))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(jsonable({
+        "benchmark": "objective_scan", "bag": str(args.bag), "device": args.device,
+        "host": platform.node(), "python": sys.version.split()[0], "argv": sys.argv[1:],
+        "frames": window, "particles": {n: int((identifier.index == k).sum()) for k, n in enumerate(names)},
+        "density": {obj.name: obj.params.get("density") for obj in problem.objects},
+        "base": {label: values.get(label, 0.0) for label in labels},
+        "velocity": dict(zip(names, v0.tolist(), strict=True)), "seconds": seconds, "rows": results}), indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
