@@ -42,7 +42,7 @@ from mosiv_ros.identify.fit import Identifier
 from mosiv_ros.identify.problem import build_problem, views_of
 from mosiv_ros.identify.run import fit_settings, problem_options
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.pipeline import prepare
+from mosiv_ros.pipeline import fit_window, prepare
 from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 
@@ -113,23 +113,24 @@ def main() -> int:
             raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(true_objects)})")
         lifted = with_true_particles(lifted, read_ground_truth_particles(args.bag),
                                      [true_objects[n]["id"] for n in names])
-    window = max(2, int(round(len(prepared.frames) * (1 - args.holdout))))
+    window = fit_window(len(prepared.frames), args.holdout)
     views = views_of(prepared.recording)
     problem = build_problem(prepared.frames[:window], lifted, prepared.recording.scene, views,
                             prepared.recording.gripper_poses, problem_options(config.identify, views))
     problem.sim_config.device = args.device
-    densities = {o.name: str(true_objects[o.name]["params"]["density"]) for o in problem.objects} \
-        if args.density == ["truth"] else pairs(args.density, "--density")
+    densities = ({o.name: float(true_objects[o.name]["params"]["density"]) for o in problem.objects}
+                 if args.density == ["truth"]
+                 else {k: float(v) for k, v in pairs(args.density, "--density").items()})
     for obj in problem.objects:
         if obj.name in densities:
-            obj.params["density"] = float(densities.pop(obj.name))
+            obj.params["density"] = densities.pop(obj.name)
     if densities:
         raise SystemExit(f"--density: no object {sorted(densities)}")
     identifier = Identifier(problem, fit_settings(config.identify))
     labels = [entry.label for entry in identifier.entries]
 
     # the base point: parameters, offsets and velocities
-    values = {f"ground.{k}": v for k, v in truth.get("ground", {}).items() if k == "friction"}
+    values = {"ground.friction": truth["ground"]["friction"]} if truth.get("ground") else {}
     for name, obj in true_objects.items():
         values.update({f"{name}.{k}": v for k, v in obj["params"].items()})
     velocity = {name: list(obj["velocity"]) + list(obj["angular_velocity"])

@@ -219,7 +219,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     from mosiv_ros.graph import Graph, NodeSpec
     from mosiv_ros.identify.estimates import Estimates
     from mosiv_ros.io.bag import list_topics
-    from mosiv_ros.pipeline import evaluate, prepare
+    from mosiv_ros.pipeline import evaluate, fit_window, prepare
 
     start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
@@ -229,7 +229,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     estimates_file.unlink(missing_ok=True)
     images = min(info.message_count for topic, info in list_topics(bag).items()
                  if topic.endswith("/color/image_raw"))
-    window = max(2, int(round(images * (1 - args.holdout))))
+    window = fit_window(images, args.holdout)
     overrides = {"identify_node": {"output_yaml": str(estimates_file), "window": window}}
     specs = [NodeSpec(name, {**({"scene": bag} if "scene" in _params(name) else {}),
                              **overrides.get(name, {})}) for name in STAGE_NODES]

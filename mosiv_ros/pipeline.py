@@ -74,6 +74,11 @@ class Prepared:
     timing: dict[str, float]
 
 
+def fit_window(frames: int, holdout: float) -> int:
+    """How many of a recording's ``frames`` are fitted when the last ``holdout`` are held out (>= 2)."""
+    return max(2, int(round(frames * (1 - holdout))))
+
+
 def prepare(bag: str | Path, config: RunConfig,
             progress: Callable[[str, int, int], None] | None = None) -> Prepared:
     """Reconstruct every frame set and lift the first complete one."""
@@ -104,7 +109,7 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
     prepared = prepare(bag, config, progress)
     identify = config.identify
     if not identify.window:
-        window = max(2, int(round(len(prepared.frames) * (1 - config.holdout))))
+        window = fit_window(len(prepared.frames), config.holdout)
         identify = replace(identify, window=window)
     tick = time.perf_counter()
     identification = identify_objects(prepared.frames, prepared.lifted, prepared.recording.scene,

@@ -121,7 +121,9 @@ def voxel_surface_distance(voxel_centres: np.ndarray, voxel_size: float, box: Bo
     the surface only to within a cell (every outermost inside cell is at -h/2), this one to within
     a voxel. The voxels are refined as the lattice is (``refine_density``, so a filled pinhole is
     no surface), their signed distances taken at their centres and interpolated trilinearly to
-    the cell centres.
+    the cell centres. The voxels lie on the lattice of ``voxel_size`` through the origin (voxel i
+    spans [i, i + 1) * voxel_size, as the reconstruction's does), the same alignment by which
+    ``occupancy_on_lattice`` counts a coarser cell's coverage.
     """
     index = np.round(voxel_centres / voxel_size - 0.5).astype(np.int64)
     ratio = box.h / voxel_size
