@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_ros.evaluate.twin import PER_DENSITY
 from mosiv_ros.identify.family import HOLDOUT
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -62,6 +63,8 @@ def _markdown(report: dict, plots: list[str]) -> str:
             err = errors.get(obj["name"], {}).get(name, {})
             measure = next((f"{k} {v:+.3g}" for k, v in err.items()
                             if k in ("log10_ratio", "abs", "rel") and v is not None), "")
+            if err.get(PER_DENSITY, err.get("log10_ratio")) != err.get("log10_ratio"):
+                measure += f" (per density {err[PER_DENSITY]:+.3g})"
             std_text = "" if std is None else f"{std:.3g}"
             truth_text = f"{err['truth']:.4g}" if err else ""
             lines.append(f"| {obj['name']} | {obj['family']} | {name} | {value:.4g} | "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 
@@ -14,6 +15,7 @@ from sensor_msgs.msg import PointCloud2
 from test_nodes_process import LATCHED, Listener
 
 from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.evaluate.twin import PER_DENSITY, parameter_errors
 from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
 from mosiv_ros.identify.run import identify_objects
@@ -22,6 +24,7 @@ from mosiv_ros.io.messages import pointcloud_from_msg, stamp_to_ns
 from mosiv_ros.nodes.outputs import statuses_of
 from mosiv_ros.pipeline import RunConfig, prepare
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.report import _markdown
 
 
 def test_mosiv_run_writes_estimates_report_and_plots_and_scores_held_out_frames(
@@ -107,6 +110,24 @@ def test_estimates_survive_the_diagnostic_status_round_trip():
     assert "family_scores" not in estimates.to_dict()["objects"][1]  # a declared family: as before
     with pytest.raises(ValueError, match="status 'mosiv/x': malformed"):
         Estimates.from_statuses([("mosiv/x", "1", OK, "", [("E", "1e4")])])  # no family
+
+
+def test_parameter_errors_also_compare_scale_parameters_per_unit_density():
+    # A fit at an assumed 1000 kg/m^3 of a ball that is 400: E 2.5x too high is E/rho exactly right.
+    estimates = Estimates([ObjectEstimate(1, "ball", "elastic",
+                                          {"E": 1e5, "nu": 0.25, "density": 1000.0, "friction": 0.5})])
+    truth = {"objects": [{"name": "ball", "params": {"E": 4e4, "nu": 0.3, "density": 400.0, "friction": 0.4}}]}
+    errors = parameter_errors(estimates, truth)["ball"]
+    assert errors["E"]["log10_ratio"] == pytest.approx(math.log10(2.5))
+    assert errors["E"][PER_DENSITY] == pytest.approx(0.0, abs=1e-12)
+    assert errors["nu"]["abs"] == pytest.approx(-0.05) and PER_DENSITY not in errors["nu"]
+    assert errors["friction"]["rel"] == pytest.approx(0.25)
+    assert errors["density"]["rel"] == pytest.approx(1.5)
+    report = {"bag": "b", "frames": 3, "frame_dt": 0.1, "fitted_frames": 2, "particles": 10,
+              "estimates": estimates.to_dict(), "parameter_errors": {"ball": errors}, "metrics": {},
+              "timing": {"fit_s": 1.0}}
+    row = next(line for line in _markdown(report, []).splitlines() if line.startswith("| ball | elastic | E |"))
+    assert "log10_ratio +0.398 (per density +0)" in row
 
 
 def test_a_fit_that_cannot_run_is_reported_as_error_estimates_not_raised(drop_bag):

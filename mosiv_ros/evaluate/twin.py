@@ -10,7 +10,10 @@ For every frame of the recording (the twin's frames are the observation frames),
 
 Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
 compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
-bulk modulus, viscosity), absolute difference for nu, relative difference otherwise.
+bulk modulus, viscosity), absolute difference for nu, relative difference otherwise. Geometry
+cannot tell mass, so a fit at an assumed density that is not the true one can only get a scale
+parameter right per unit density (a body's accelerations follow div(sigma) / rho): scale
+parameters also carry the log10 ratio of parameter / density against the truth's.
 
 What it is for: the report of ``mosiv run`` and the identification benchmark.
 What it is not for: losses (``identify.losses``).
@@ -32,6 +35,8 @@ from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
 
 LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
+PER_DENSITY = "log10_ratio_per_density"
+"""Error key of a scale parameter divided by the object's density, against the truth's."""
 EMD_EVERY = 3
 """EMD (an exact assignment) on every third frame only."""
 SPLAT_RADIUS = 0.8
@@ -116,13 +121,20 @@ def parameter_errors(estimates: Estimates, truth: dict) -> dict[str, dict[str, d
                 continue
             t = float(actual[name])
             if name in LOG_SCALE:
-                kind, error = "log10_ratio", math.log10(value / t) if value > 0 and t > 0 else math.inf
+                kind, error = "log10_ratio", _log10_ratio(value, t)
             elif name == "nu":
                 kind, error = "abs", value - t
             else:
                 kind, error = "rel", (value - t) / t if t else math.inf
-            errors.setdefault(obj.name, {})[name] = {"estimate": value, "truth": t, kind: error}
+            entry = {"estimate": value, "truth": t, kind: error}
+            if name in LOG_SCALE and "density" in obj.params and "density" in actual:
+                entry[PER_DENSITY] = error - _log10_ratio(obj.params["density"], float(actual["density"]))
+            errors.setdefault(obj.name, {})[name] = entry
     return errors
+
+
+def _log10_ratio(value: float, truth: float) -> float:
+    return math.log10(value / truth) if value > 0 and truth > 0 else math.inf
 
 
 def _images_by_stamp(recording: Recording) -> dict[int, dict]:
