@@ -15,11 +15,13 @@ The base point is the recording's ground truth (``--at truth``: parameters and i
 velocities; boundary offsets 0 unless ``--offset``) or an estimates file (``--at
 out/run/estimates.yaml``: parameters, boundary offsets, velocities). ``--set name=value``
 overrides an entry, ``--velocity truth`` takes the true initial velocities instead of the
-estimated ones. Two switches ask what the estimated geometry and the assumed density cost:
-``--true-particles`` (all objects, or ``--true-particles cube``) starts those objects from the
-recorder's own particles at the fit's first frame instead of the lifted ones, and ``--density
-truth`` (or ``--density sand=1600``) simulates objects at their true density instead of the
-declared or default one the fit uses (density is not fitted).
+estimated ones (those at the recording's start: refused when lifting started the fit at a later
+frame, which the truth gives no velocities for). Two switches ask what the estimated geometry
+and the assumed density cost: ``--true-particles`` (all objects, or ``--true-particles cube``)
+starts those objects from the recorder's own particles at the fit's first frame instead of the
+lifted ones, and ``--density truth`` (or ``--density sand=1600``) simulates objects at their
+true density instead of the declared or default one the fit uses. (With identify_node's
+``density_ratios`` the fitted densities are entries like any other: ``--set``, ``--scan``.)
 
 Writes JSON: the options, the base point, and per row the whole loss and each object's share.
 """
@@ -135,6 +137,7 @@ def main() -> int:
         values.update({f"{name}.{k}": v for k, v in obj["params"].items()})
     velocity = {name: list(obj["velocity"]) + list(obj["angular_velocity"])
                 for name, obj in true_objects.items()}
+    estimated = set()
     if args.at != "truth":
         estimates = Estimates.read(args.at)
         values.update(estimates.scene)
@@ -142,6 +145,12 @@ def main() -> int:
             values.update({f"{obj.name}.{k}": v for k, v in obj.params.items()})
             if args.velocity == "base":
                 velocity[obj.name] = list(obj.velocity)
+                estimated.add(obj.name)
+    start = int(truth["frames"]["start_stamp_ns"])
+    if lifted.stamp_ns != start and any(obj.name not in estimated for obj in problem.objects):
+        raise SystemExit(f"the true initial velocities are the recording's at its start ({start} ns), but the "
+                         f"fit starts at {lifted.stamp_ns} ns, the first frame lifting could use: give "
+                         "--at an estimates file, whose velocities are at the fit's start")
     values.update({f"{k}.boundary_offset": float(v) for k, v in pairs(args.offset, "--offset").items()})
     values.update({k: float(v) for k, v in pairs(args.set, "--set").items()})
     missing = [label for label in labels if label not in values and not label.endswith(".boundary_offset")]

@@ -111,6 +111,9 @@ class IdentifyConfig:
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    density_ratios: bool = _param(
+        False, "Also fit the objects' undeclared densities. Only their ratios show (in contact), so "
+        "when no density is declared the lowest-id object's stays at its default and sets the scale.")
     families: list[str] = _param(
         ["elastic", "plastic", "sand", "fluid"],
         "Candidate material families of an object whose family the scene does not declare: each "

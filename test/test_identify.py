@@ -300,6 +300,60 @@ def test_boundary_offset_gradient_matches_finite_differences():
     assert analytic == pytest.approx(numeric, rel=0.1)
 
 
+def test_fit_recovers_a_density_ratio_from_a_head_on_collision():
+    # A ball of 400 kg/m^3 hits one of 1200 at rest: how fast each leaves the collision tells the
+    # mass ratio (geometry alone cannot). With a's density known, b's is fitted from 1000.
+    dx, frames = 0.02, 12
+    a, b = sphere((0.15, 0.2, 0.2), 0.04, dx / 2), sphere((0.36, 0.2, 0.2), 0.04, dx / 2)
+    models = [ObjectModel("a", "elastic", {"E": 1e4, "density": 400.0}),
+              ObjectModel("b", "elastic", {"E": 1e4, "density": 1200.0})]
+    truth = scene([a, b], models, dx=dx, lo=(0, 0, 0), hi=(0.7, 0.4, 0.4), effects=[],
+                  velocities=[(1.5, 0.0, 0.0), (0.0, 0.0, 0.0)])
+    traj = truth.rollout(frames)[:, 0].astype(np.float64)
+    index = truth.obj.numpy()
+    obs = Observations(truth.config.frame_dt, [[traj[f][index == k] for k in (0, 1)]
+                                               for f in range(frames + 1)], object_ids=[1, 2])
+    particles = Particles(x=truth.x0.numpy().astype(np.float64), volume=(dx / 2) ** 3, object_index=index)
+    guess = [ObjectModel("a", "elastic", {"E": 1e4, "density": 400.0}), ObjectModel("b", "elastic", {"E": 1e4})]
+    problem = FitProblem(guess, particles, obs, truth.config, ["density"],
+                         fixed={"a": {"E", "density"}, "b": {"E"}})
+    identifier = Identifier(problem, FitSettings(curriculum=[0], iterations=8, search_samples=0))
+    assert [e.label for e in identifier.entries] == ["b.density"]
+    result = identifier.run()
+    assert result.values["density"][1] == pytest.approx(1200.0, rel=0.05)
+    assert result.values["density"][0] == 400.0
+
+
+def _two_cubes(declared: dict[int, dict], fit_density: bool, ids=(1, 2)):
+    """The fit problem of resting cubes (ids ``ids``) with the declared parameters given per id."""
+    from mosiv_ros.identify.problem import ProblemOptions, build_problem
+    from mosiv_ros.io.scene import Scene, SceneObject
+    from mosiv_ros.lifting.lift import LiftedParticles
+    from mosiv_ros.recon.reconstruct import ObjectGeometry, ObservedFrame
+
+    cubes = {i: box((0.1 * i, 0.0, 0.05), (0.04, 0.04, 0.04), 0.01)[0] for i in ids}
+    x = np.concatenate(list(cubes.values()))
+    object_id = np.concatenate([np.full(len(c), i) for i, c in cubes.items()])
+    lifted = LiftedParticles(x, object_id, object_id, np.zeros(len(x), np.uint8), np.full(len(x), -0.01),
+                             1e-6, 5e3, 1e-4)
+    frames = [ObservedFrame(k * 100_000_000, {i: ObjectGeometry(i, c, np.zeros((0, 3)), 0.01)
+                                              for i, c in cubes.items()}) for k in range(3)]
+    scene = Scene([SceneObject(i, f"cube{i}", "elastic", declared.get(i, {})) for i in ids])
+    problem = build_problem(frames, lifted, scene, options=ProblemOptions(use_masks=False, fit_density=fit_density))
+    return [e.label for e in Identifier(problem).entries if e.name == "density"]
+
+
+def test_only_density_ratios_are_free_the_scale_is_declared_or_the_first_objects():
+    # motion shows only the ratio of densities: with none declared the first object sets the scale
+    assert _two_cubes({}, fit_density=True) == ["cube2.density"]
+    assert _two_cubes({}, fit_density=True, ids=(1, 2, 3)) == ["cube2.density", "cube3.density"]
+    # a declared density sets it: every other object's is fitted
+    assert _two_cubes({2: {"density": 1200.0}}, fit_density=True) == ["cube1.density"]
+    assert _two_cubes({1: {"density": 900.0}, 2: {"density": 1200.0}}, fit_density=True) == []
+    assert _two_cubes({}, fit_density=True, ids=(1,)) == []  # alone: nothing to compare with
+    assert _two_cubes({}, fit_density=False) == []  # the default: densities as declared or 1000
+
+
 def test_after_a_divergence_with_no_step_left_to_undo_the_fit_goes_back_to_its_best_point():
     # A point can pass one window and diverge on the next: undoing "the last step" again would
     # leave the fit trying it for the rest of the stage (seen on sand_and_elastic: 12 times).

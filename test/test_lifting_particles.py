@@ -132,6 +132,12 @@ def test_interpenetrating_objects_get_disjoint_supports_split_between_them():
     assert abs(lifted.object_volume(1) / lifted.object_volume(2) - 1) < 0.03
     # Band particles never reach into the other object: those of a near b are outside b's solid.
     assert np.all(lifted.sdf[lifted.object_id == 1][xa[:, 0] > 0.04] > -H)
+    # The solid at per-object offsets: each object's surface moves by its own o_s only.
+    solid = lifted.solid({1: 0.004, 2: -0.003})
+    for i, offset in ((1, 0.004), (2, -0.003)):
+        mine = lifted.object_id == i
+        np.testing.assert_array_equal(solid[mine], lifted.sdf[mine] <= -offset)
+    assert solid[lifted.object_id == 1].sum() < (lifted.sdf[lifted.object_id == 1] <= 0).sum()
 
 
 def test_touching_objects_lifted_from_reconstruction_keep_their_volume_and_never_overlap():

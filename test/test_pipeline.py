@@ -167,6 +167,6 @@ def test_twin_predicts_the_solid_not_the_boundary_band(drop_bag):
                                               {"E": 2e4, "nu": 0.3, "boundary_offset": offset})],
                               stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
         first = Twin(lifted, estimates, prepared.recording.scene, device="cpu").predict(0.1).positions[0]
-        solid = lifted.sdf + offset <= 0
+        solid = lifted.sdf + offset <= 0  # one object: its offset is the segment's
         assert len(first) == solid.sum()
         assert np.allclose(first, lifted.x[solid], atol=1e-6)

@@ -64,6 +64,7 @@ import numpy as np
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, silhouette_object_losses
 from mosiv_ros.identify.observations import Observations
+from mosiv_ros.lifting.lift import boundary_volume
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
@@ -147,8 +148,7 @@ class Boundary:
     band: float
 
     def volumes(self, offsets_per_particle: np.ndarray) -> np.ndarray:
-        z = -self.beta * (self.sdf + offsets_per_particle)
-        return self.lattice_volume * (0.5 * (1.0 + np.tanh(0.5 * z)) + self.eps)
+        return boundary_volume(self.sdf, self.lattice_volume, offsets_per_particle, self.beta, self.eps)
 
     def dvolume_doffset(self, offsets_per_particle: np.ndarray) -> np.ndarray:
         sig = 0.5 * (1.0 + np.tanh(-0.5 * self.beta * (self.sdf + offsets_per_particle)))

@@ -17,9 +17,13 @@ calibration and the scene declaration into what ``identify.fit`` needs:
   leaves open (declared without one, or not declared), ``ProblemOptions.families`` (the choice
   of ``identify.family``) or else ``ProblemOptions.default_family``;
 - the free parameters: for each object the parameters its family uses that the declaration does
-  not give (density stays at its declared or default value: geometry alone cannot tell mass),
-  each object's friction only when there are other objects to touch, and the ground friction
-  unless declared.
+  not give, each object's friction only when there are other objects to touch, and the ground
+  friction unless declared. Density stays at its declared or default value unless
+  ``ProblemOptions.fit_density``: then every undeclared density of a scene of several objects is
+  free but one. Motion cannot tell mass: scaling every density and every stress-like parameter
+  (moduli, yield stress, viscosity) alike changes nothing, while the ratio of two objects'
+  densities shows where they push on each other. So when no density is declared, the lowest-id
+  object's stays at its default and the others' are fitted relative to it.
 
 What it is for: the glue between stages. What it is not for: fitting (``identify.fit``).
 """
@@ -69,12 +73,14 @@ class ProblemOptions:
     """Choices the caller makes: the family of objects the declaration leaves open, the margin.
 
     ``families`` gives such objects' family by id; the others get ``default_family``.
+    ``fit_density``: fit the undeclared densities' ratios (see the module docstring).
     """
 
     default_family: str = "elastic"
     margin: float = 0.1
     use_masks: bool = True
     families: dict[int, str] = field(default_factory=dict)
+    fit_density: bool = False
 
 
 def object_name(scene: Scene, object_id: int) -> str:
@@ -156,6 +162,12 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
                        effects=effects_of(scene, objects),
                        colliders=_colliders(scene, gripper_poses, stamps[0]))
     fixed = {o.name: set(o.params) for o in objects}  # declared values stay as declared
+    if options.fit_density and len(objects) > 1:
+        open_density = [o for o in objects if "density" not in o.params]
+        if len(open_density) == len(objects):  # nothing declared sets the scale: the first does
+            fixed[open_density.pop(0).name].add("density")
+        if open_density:
+            free.append("density")
     band = float(max(lifted.sdf.max(), 0.0))  # the boundary band lifting sampled outside
     boundary = Boundary(lifted.sdf, lifted.lattice_volume, lifted.beta, lifted.eps, band)
     problem = FitProblem(objects, particles, observations, config, free, fixed, boundary)

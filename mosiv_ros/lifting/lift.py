@@ -88,10 +88,18 @@ class LiftedParticles:
 
     def volumes(self, offsets: Mapping[int, float] | None = None) -> np.ndarray:
         """Per-particle volume (m^3) for boundary offsets o_s per segment (default 0)."""
+        return boundary_volume(self.sdf, self.lattice_volume, self._offsets(offsets), self.beta, self.eps)
+
+    def solid(self, offsets: Mapping[int, float] | None = None) -> np.ndarray:
+        """(N,) bool: the particles inside the surface moved by the offsets, d_i + o_s <= 0."""
+        return self.sdf + self._offsets(offsets) <= 0.0
+
+    def _offsets(self, offsets: Mapping[int, float] | None) -> np.ndarray:
+        """Each particle's segment's offset o_s (0 where none is given)."""
         offset = np.zeros(len(self.x))
         for segment, value in (offsets or {}).items():
             offset[self.segment == segment] = value
-        return boundary_volume(self.sdf, self.lattice_volume, offset, self.beta, self.eps)
+        return offset
 
     def object_volume(self, object_id: int, offsets: Mapping[int, float] | None = None) -> float:
         """Total particle volume (m^3) of one object."""

@@ -108,8 +108,7 @@ class Twin:
         self.particles = particles
         # what a prediction reports: the solid, not the boundary band (volume ~0, up to the band's
         # width outside the surface) that the simulation carries for the M-PhyGs volumes
-        offset = np.array([offsets.get(i, 0.0) for i in ids])[particles.object_index]
-        solid = lifted.sdf + offset <= 0.0
+        solid = lifted.solid(offsets)
         for k in range(len(ids)):  # an object too thin to have a particle inside keeps them all
             mine = particles.object_index == k
             if not solid[mine].any():
