@@ -22,6 +22,8 @@ starts those objects from the recorder's own particles at the fit's first frame 
 lifted ones, and ``--density truth`` (or ``--density sand=1600``) simulates objects at their
 true density instead of the declared or default one the fit uses. (With identify_node's
 ``density_ratios`` the fitted densities are entries like any other: ``--set``, ``--scan``.)
+``--true-effects`` declares the effects the recording leaves undeclared (the thrown ball's air
+drag) at their true values, so that the truth is a point of the fit's model.
 
 Writes JSON: the options, the base point, and per row the whole loss and each object's share.
 """
@@ -43,9 +45,11 @@ from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import Identifier
 from mosiv_ros.identify.problem import build_problem, views_of
 from mosiv_ros.identify.run import fit_settings, problem_options
+from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.pipeline import fit_window, prepare
 from mosiv_ros.report import jsonable
+from mosiv_ros.sim import BUILTIN_EFFECTS
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 
 
@@ -76,6 +80,16 @@ def with_true_particles(lifted: LiftedParticles, truth: GroundTruthParticles,
     return dataclasses.replace(lifted, **{key: np.concatenate(value) for key, value in parts.items()})
 
 
+def declare_true_effects(scene: Scene, truth: dict) -> None:
+    """Add the recording's undeclared simulator effects to ``scene``, declared at their true values."""
+    undeclared = [e for e in truth.get("effects", []) if not e.get("declared")]
+    unknown = [e["type"] for e in undeclared if e["type"] not in BUILTIN_EFFECTS]
+    if unknown:
+        raise SystemExit(f"--true-effects: {unknown} are not simulator effects "
+                         f"(known: {', '.join(sorted(BUILTIN_EFFECTS))})")
+    scene.effects.extend(DeclaredEffect(e["type"], dict(e["params"])) for e in undeclared)
+
+
 def pairs(items: list[str], what: str) -> dict[str, str]:
     out = {}
     for item in items:
@@ -97,6 +111,8 @@ def main() -> int:
     parser.add_argument("--true-particles", nargs="?", const="all", default="",
                         help="'all' or comma-separated object names")
     parser.add_argument("--density", action="append", default=[], help="'truth' or object=kg/m^3")
+    parser.add_argument("--true-effects", action="store_true",
+                        help="declare the recording's undeclared effects at their true values")
     parser.add_argument("--params-file", type=Path, default=Path("config/demo.yaml"))
     parser.add_argument("--holdout", type=float, default=0.3)
     parser.add_argument("--device", default="cpu")
@@ -107,6 +123,8 @@ def main() -> int:
     true_objects = {o["name"]: o for o in truth["objects"]}
     config = run_config(args.params_file, args.device)
     prepared = prepare(args.bag, config)
+    if args.true_effects:
+        declare_true_effects(prepared.recording.scene, truth)
     lifted = prepared.lifted
     if args.true_particles:
         names = list(true_objects) if args.true_particles == "all" else args.true_particles.split(",")

@@ -147,6 +147,27 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
 
 
+def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
+    # rows (each at its own time step) and slices of a batch (all at the stiffest row's) run side
+    # by side, one simulator per core: the losses are those of one simulator doing them in turn
+    problem, _ = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"], frames=4)
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    serial, parallel = (Identifier(problem, FitSettings(cpu_workers=n)) for n in (1, 2))
+    e, nu = (entry.coordinate for entry in serial.entries)
+    candidates = np.array([[e.to_u(E), nu.to_u(v)] for E, v in
+                           ((5e3, 0.3), (2e4, 0.4), (8e4, 0.2), (3e5, 0.35), (1e4, 0.1))])
+    for together in (False, True):
+        expected = serial.batch_object_losses(candidates, velocity, together=together)
+        got = parallel.batch_object_losses(candidates, velocity, together=together)
+        np.testing.assert_array_equal(got[0], expected[0])
+        np.testing.assert_array_equal(got[1], expected[1])
+    assert len({n for n, _ in parallel._batches}) == 3  # single rows, and slices of 3 and 2 rows
+    # the time step matters: one row alone differs from the same row in the stiffest's batch
+    alone = serial.batch_losses(candidates, velocity, together=False)
+    assert not np.allclose(alone[:1], expected[0][:1], rtol=1e-9, atol=0)
+
+
 def _jelly_problem(true_params, guess, frames=15, observed_points=None, **settings):
     """A soft cube dropped so that it squashes and rebounds: E and nu show, friction barely."""
     return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **settings)

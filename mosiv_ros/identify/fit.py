@@ -53,10 +53,12 @@ import json
 import logging
 import math
 import os
+import queue
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +110,8 @@ class FitSettings:
     search_starts: int = 1
     search_decades: float = 1.0
     search_frames: int = 0
+    cpu_workers: int = 0
+    """Rows of a batch of losses simulated at once on the CPU, each on one core (0: every core)."""
 
 
 @dataclass
@@ -222,7 +226,7 @@ class Identifier:
         self.centre0 = np.stack([problem.particles.x[self.index == k].mean(axis=0)
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
-        self._batches: dict[int, Simulator] = {}
+        self._batches: dict[tuple[int, int], Simulator] = {}
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.start: tuple[np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0))  # Adam's start
         # the lowest whole-window loss an iteration saw: (loss, u, velocity, per-object losses)
@@ -363,11 +367,12 @@ class Identifier:
         The same objective as Adam's (weighted Chamfer and silhouette terms, mean over frames),
         without gradients.
 
-        ``together`` (default: on a GPU): all rows in one batched rollout, at the time step of
-        the stiffest row; else one at a time, each at its own stable time step (on the CPU a
-        batch costs as much as its rows, and the loss of one parameter set differs by up to
-        10 % between time steps). Over frames 1..``frames`` (default all); NaN where a rollout
-        diverged.
+        ``together`` (default: on a GPU): every row at the time step of the stiffest row, in one
+        batched rollout; else each row at its own stable time step (on the CPU a batch costs as
+        much as its rows, and the loss of one parameter set differs by up to 10 % between time
+        steps). On the CPU the rows, or slices of them when together, are simulated side by side,
+        one simulator per core (``FitSettings.cpu_workers``). Over frames 1..``frames`` (default
+        all); NaN where a rollout diverged (every row of its batch or slice).
         """
         return self.batch_object_losses(candidates, velocity, frames, together)[0]
 
@@ -380,22 +385,54 @@ class Identifier:
         """
         obs = self.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
+        cuda = self.sim.device.startswith("cuda")
         if together is None:
-            together = self.sim.device.startswith("cuda")
-        groups = [candidates] if together else [row[None] for row in candidates]
-        results = [self._losses(group, velocity, frames) for group in groups]
+            together = cuda
+        self._apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
+        for f in range(1, frames + 1):
+            obs.trees(f)  # built once, before threads share them
+        # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
+        # slices of a batch) run side by side on every core, with the same results as in turn.
+        workers = 1 if cuda else max(1, min(len(candidates), self.settings.cpu_workers or os.cpu_count() or 1))
+        if together:  # one time step, the stiffest row's, for every row
+            groups = [candidates] if cuda else [g for g in np.array_split(candidates, workers) if len(g)]
+            sims = [self._batch(len(g), slot) for slot, g in enumerate(groups)]
+            insides = [self._configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
+            substeps = max(sim.time_step()[0] for sim in sims)
+            jobs = [partial(self._score, sim, inside, frames, substeps)
+                    for sim, inside in zip(sims, insides, strict=True)]
+        else:  # each row at its own time step, on the simulator of a free slot
+            idle = queue.SimpleQueue()
+            for slot in range(workers):
+                idle.put(self._batch(1, slot))
+
+            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                sim = idle.get()
+                try:
+                    return self._score(sim, self._configure(sim, row[None]), frames)
+                finally:
+                    idle.put(sim)
+
+            jobs = [partial(one, row) for row in candidates]
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            results = list(pool.map(lambda job: job(), jobs))
         return (np.concatenate([total for total, _ in results]),
                 np.concatenate([per for _, per in results]))
 
-    def _losses(self, candidates: np.ndarray, velocity: np.ndarray,
-                frames: int) -> tuple[np.ndarray, np.ndarray]:
-        obs, s = self.problem.observations, self.settings
+    def _batch(self, n: int, slot: int = 0) -> Simulator:
+        """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
+        key = (n, slot)
+        if key not in self._batches:
+            self._batches[key] = Simulator(self.problem.objects, self.problem.particles,
+                                           self.problem.sim_config, n_batch=n)
+        return self._batches[key]
+
+    def _configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
+        """Set ``batch`` to the rows ``candidates``; (B, N) which particles are inside the surface.
+
+        What no entry sets comes from the fit's own simulator, as ``_apply`` left it.
+        """
         n = len(candidates)
-        batch = self._batches.get(n)
-        if batch is None:
-            batch = self._batches[n] = Simulator(self.problem.objects, self.problem.particles,
-                                                 self.problem.sim_config, n_batch=n)
-        self._apply(candidates[0], velocity)
         batch.set_initial_velocity(self.sim.v0.numpy()[: self.sim.n_particles])
         offsets = np.repeat(self.offsets[None], n, axis=0)
         for name in dict.fromkeys(e.name for e in self.entries):
@@ -406,12 +443,18 @@ class Identifier:
             if name != OFFSET:
                 batch.params.set(name, values)
         boundary = self.problem.boundary
-        inside = np.ones((n, len(self.index)), dtype=bool)
-        if boundary is not None:
-            batch.set_volume(np.stack([boundary.volumes(o[self.index]) for o in offsets]))
-            inside = np.stack([boundary.inside(o[self.index]) for o in offsets])
+        if boundary is None:
+            return np.ones((n, len(self.index)), dtype=bool)
+        batch.set_volume(np.stack([boundary.volumes(o[self.index]) for o in offsets]))
+        return np.stack([boundary.inside(o[self.index]) for o in offsets])
+
+    def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
+               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Roll the configured ``batch`` out over ``frames`` frames and score each row."""
+        obs, s = self.problem.observations, self.settings
+        n = batch.n_batch
         try:
-            traj = batch.rollout(frames)
+            traj = batch.rollout(frames, substeps=substeps)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan)
@@ -423,9 +466,7 @@ class Identifier:
                                           s.per_object_loss, obs.trees(f))
             return s.chamfer_weight * value, s.chamfer_weight * per
 
-        for f in range(1, frames + 1):
-            obs.trees(f)  # built once, before the threads share them
-        # KD-tree builds and queries release the GIL: score candidates and frames in threads
+        # KD-tree queries release the GIL: score candidates and frames in threads
         jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             scored = list(pool.map(frame_loss, jobs))
