@@ -395,7 +395,7 @@ class Identifier:
         # slices of a batch) run side by side on every core, with the same results as in turn.
         workers = 1 if cuda else max(1, min(len(candidates), self.settings.cpu_workers or os.cpu_count() or 1))
         if together:  # one time step, the stiffest row's, for every row
-            groups = [candidates] if cuda else [g for g in np.array_split(candidates, workers) if len(g)]
+            groups = [candidates] if cuda else np.array_split(candidates, workers)
             sims = [self._batch(len(g), slot) for slot, g in enumerate(groups)]
             insides = [self._configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
             substeps = max(sim.time_step()[0] for sim in sims)

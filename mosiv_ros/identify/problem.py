@@ -19,11 +19,12 @@ calibration and the scene declaration into what ``identify.fit`` needs:
 - the free parameters: for each object the parameters its family uses that the declaration does
   not give, each object's friction only when there are other objects to touch, and the ground
   friction unless declared. Density stays at its declared or default value unless
-  ``ProblemOptions.fit_density``: then every undeclared density of a scene of several objects is
-  free but one. Motion cannot tell mass: scaling every density and every stress-like parameter
+  ``ProblemOptions.fit_density``, and then in a scene of several objects only its ratios are
+  fitted. Motion cannot tell mass: scaling every density and every stress-like parameter
   (moduli, yield stress, viscosity) alike changes nothing, while the ratio of two objects'
-  densities shows where they push on each other. So when no density is declared, the lowest-id
-  object's stays at its default and the others' are fitted relative to it.
+  densities shows where they push on each other. So every undeclared density is free except,
+  when no density is declared, the lowest-id object's: it stays at its default and sets the
+  scale.
 
 What it is for: the glue between stages. What it is not for: fitting (``identify.fit``).
 """
