@@ -94,6 +94,9 @@ class IdentifyConfig:
     """identify_node: fit per-object material parameters with the differentiable simulator (stage 3)."""
 
     device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
+    cpu_workers: int = _param(
+        0, "On the CPU: simulations the batched losses (search, uncertainty) run side by side, one per "
+        "core; 0 = every core. The results do not depend on it.")
     window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.")
     idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.")
     curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.")

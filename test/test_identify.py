@@ -163,6 +163,8 @@ def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
         np.testing.assert_array_equal(got[0], expected[0])
         np.testing.assert_array_equal(got[1], expected[1])
     assert len({n for n, _ in parallel._batches}) == 3  # single rows, and slices of 3 and 2 rows
+    with pytest.raises(ValueError, match="cpu_workers must be 0 .every core. or more, got -1"):
+        Identifier(problem, FitSettings(cpu_workers=-1))
     # the time step matters: one row alone differs from the same row in the stiffest's batch
     alone = serial.batch_losses(candidates, velocity, together=False)
     assert not np.allclose(alone[:1], expected[0][:1], rtol=1e-9, atol=0)

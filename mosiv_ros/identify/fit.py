@@ -215,6 +215,8 @@ class Identifier:
                              f"{len(problem.objects)}")
         if obs.n_frames < 2:
             raise ValueError(f"need at least 2 observed frames, got {obs.n_frames}")
+        if self.settings.cpu_workers < 0:
+            raise ValueError(f"cpu_workers must be 0 (every core) or more, got {self.settings.cpu_workers}")
         if abs(obs.frame_dt - problem.sim_config.frame_dt) > 1e-9:
             raise ValueError(f"observation frame_dt {obs.frame_dt} differs from the simulator's "
                              f"{problem.sim_config.frame_dt}")

@@ -62,7 +62,8 @@ def fit_settings(config: IdentifyConfig) -> FitSettings:
         per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
         windows=config.windows, search_samples=config.search_samples,
         search_rounds=config.search_rounds,
-        search_starts=config.search_starts, search_frames=config.search_frames)
+        search_starts=config.search_starts, search_frames=config.search_frames,
+        cpu_workers=config.cpu_workers)
 
 
 def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
