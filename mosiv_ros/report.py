@@ -63,7 +63,7 @@ def _markdown(report: dict, plots: list[str]) -> str:
             err = errors.get(obj["name"], {}).get(name, {})
             measure = next((f"{k} {v:+.3g}" for k, v in err.items()
                             if k in ("log10_ratio", "abs", "rel") and v is not None), "")
-            if err.get(PER_DENSITY, err.get("log10_ratio")) != err.get("log10_ratio"):
+            if PER_DENSITY in err and err[PER_DENSITY] != err["log10_ratio"]:
                 measure += f" (per density {err[PER_DENSITY]:+.3g})"
             std_text = "" if std is None else f"{std:.3g}"
             truth_text = f"{err['truth']:.4g}" if err else ""

@@ -416,8 +416,11 @@ class Identifier:
                     idle.put(sim)
 
             jobs = [partial(one, row) for row in candidates]
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            results = list(pool.map(lambda job: job(), jobs))
+        if workers == 1:  # the GPU's one batch, or one core: in this thread, as before the threads
+            results = [job() for job in jobs]
+        else:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                results = list(pool.map(lambda job: job(), jobs))
         return (np.concatenate([total for total, _ in results]),
                 np.concatenate([per for _, per in results]))
 
