@@ -189,6 +189,40 @@ def test_one_scene_in_domains_of_different_margins_moves_the_same():
         assert np.abs(other - tracks[0]).max() < 1e-4
 
 
+def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
+    """On the CPU the grid passes skip the empty grid; no node a particle reaches falls outside."""
+    from mosiv_ros.sim.simulator import SimState, _Grid, _State
+
+    dx = 0.02
+    ball = sphere((0.12, 0.2, 0.2), 0.04, dx / 2)
+    block = box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)
+    sim = scene([ball, block], [ObjectModel("ball", "elastic", {"E": 3e4}),
+                                ObjectModel("block", "plastic", {"E": 5e4})],
+                dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=0.05),
+                velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=2)
+    n_sub, dt = sim.time_step()
+    x = np.repeat(sim.x0.numpy()[None], 2, axis=0).astype(np.float64)
+    lying = x.copy()
+    lying[1, :3] = [[0.061, 0.061, 0.061], [0.539, 0.339, 0.339], [0.3, 0.07, 0.33]]  # near walls
+    for positions in (x, lying):
+        src, dst = _State(2 * sim.n_particles, sim.device, False), _State(2 * sim.n_particles,
+                                                                          sim.device, False)
+        sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
+        grid = _Grid(2, 2, sim.n_nodes, 2 * sim.n_particles, False, sim.device, False)
+        sim.params.replicate()
+        sim._collider_poses(0, n_sub, dt)
+        sim._substep(src, dst, grid, 0, dt)
+        box_lo, box_dims = sim._active_box(src)
+        ijk = np.stack(np.unravel_index(np.arange(sim.n_nodes), sim.dims), axis=1)
+        inside = np.all((ijk >= box_lo) & (ijk < np.add(box_lo, box_dims)), axis=1)
+        m = grid.m.numpy().reshape(2, 2, sim.n_nodes)
+        v = np.abs(grid.v.numpy()).reshape(2, 2, sim.n_nodes, 3).max(axis=-1)
+        assert np.all(m[..., ~inside] == 0.0)
+        assert np.all((v > 0) <= (m > 0)) and np.count_nonzero(v) > 0.5 * np.count_nonzero(m)
+        if DEVICE == "cpu":
+            assert inside.sum() < (0.5 if positions is x else 1.0) * sim.n_nodes
+
+
 @pytest.mark.skipif(not DEVICE.startswith("cuda"),
                     reason="CUDA graphs need a GPU: run with MOSIV_TEST_DEVICE=cuda:0")
 def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches():

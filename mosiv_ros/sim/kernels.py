@@ -28,7 +28,9 @@ corrections are equal and opposite, so momentum is conserved.
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
 accumulations are ``wp.atomic_add``. No kernel loops over objects (Warp's adjoint does not
 support dynamic loops that carry state): the sums over a node's fields are atomics in
-``node_mass`` and ``contact_totals``, and ``grid_update`` runs one thread per field node.
+``node_mass`` and ``contact_totals``, and ``grid_update`` runs one thread per field node. These
+three launch over a box of nodes (``field_node``): the whole grid, or on the CPU, where every
+thread costs, the nodes the particles' stencils can reach (``Simulator._active_box``).
 """
 
 from __future__ import annotations
@@ -55,6 +57,20 @@ GROUND_SNAP = wp.constant(1.0e-3)
 @wp.func
 def node_index(i: int, j: int, l: int, dims: wp.vec3i):
     return (i * dims[1] + j) * dims[2] + l
+
+
+@wp.func
+def field_node(t: int, box_lo: wp.vec3i, box_dims: wp.vec3i, dims: wp.vec3i):
+    """Field-node index of thread ``t`` of a launch over a box of nodes in every field.
+
+    The launch has one thread per node of the box (``box_dims`` nodes from ``box_lo``) in each
+    (batch, object) field, field-major; the whole grid is the box (0, 0, 0) + ``dims``.
+    """
+    n_box = box_dims[0] * box_dims[1] * box_dims[2]
+    r = t % n_box
+    return (t // n_box) * dims[0] * dims[1] * dims[2] + node_index(
+        box_lo[0] + r // (box_dims[1] * box_dims[2]), box_lo[1] + (r // box_dims[2]) % box_dims[1],
+        box_lo[2] + r % box_dims[2], dims)
 
 
 @wp.func
@@ -252,10 +268,10 @@ def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.kernel
-def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int,
-              node_m: wp.array(dtype=float)):
+def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int, dims: wp.vec3i,
+              box_lo: wp.vec3i, box_dims: wp.vec3i, node_m: wp.array(dtype=float)):
     """Total mass of all object fields at each node (contact pass 1, one thread per field node)."""
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[i]
     if m > 0.0:
         batch = i // (n_objects * n_nodes)
@@ -272,6 +288,9 @@ def contact_totals(
     node_m: wp.array(dtype=float),
     n_nodes: int,
     n_objects: int,
+    dims: wp.vec3i,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
     dt: float,
     present_m: wp.array(dtype=float),
     present_p: wp.array(dtype=wp.vec3),
@@ -286,7 +305,7 @@ def contact_totals(
     (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum after
     the effects (m v), friction-weighted mass (mu m), count, and the highest normal_rank.
     """
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[i]
     if m <= 0.0:
         return
@@ -330,6 +349,8 @@ def grid_update(
     n_objects: int,
     n_nodes: int,
     dims: wp.vec3i,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
     dt: float,
@@ -339,7 +360,7 @@ def grid_update(
 
     The contact sums (``contact_totals``) are only read when there are several objects.
     """
-    index = wp.tid()
+    index = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[index]
     if m <= 0.0:
         return  # no particle's stencil reads an empty field node; grid_v was zeroed

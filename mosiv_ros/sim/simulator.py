@@ -461,26 +461,53 @@ class Simulator:
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
+        box_lo, box_dims = self._active_box(src)
+        n_box = B * K * int(np.prod(box_dims))
+        box = [dims, wp.vec3i(*box_lo), wp.vec3i(*box_dims)]
         if K > 1:
-            wp.launch(kernels.node_mass, dim=B * K * G, device=d, inputs=[grid.m, G, K],
+            wp.launch(kernels.node_mass, dim=n_box, device=d, inputs=[grid.m, G, K, *box],
                       outputs=[grid.node_m])
-            wp.launch(kernels.contact_totals, dim=B * K * G, device=d, inputs=[
-                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, dt,
+            wp.launch(kernels.contact_totals, dim=n_box, device=d, inputs=[
+                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, *box,
+                dt,
             ], outputs=[grid.present_m, grid.present_p, grid.present_mu, grid.present_count,
                         grid.lead_rank])
-        wp.launch(kernels.grid_update, dim=B * K * G, device=d, inputs=[
+        wp.launch(kernels.grid_update, dim=n_box, device=d, inputs=[
             grid.m, grid.p, grid.a, p["friction"], grid.node_m, grid.present_m, grid.present_p,
             grid.present_mu, grid.present_count, grid.lead_rank, self.ranked_object,
             p["ground.height"], p["ground.normal"], p["ground.friction"],
             int(self.config.ground is not None),
             self._collider_shape, self._collider_size, self._collider_friction,
             self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
-            row, len(self.config.colliders), K, G, dims, lo, self.dx, dt,
+            row, len(self.config.colliders), K, G, *box, lo, self.dx, dt,
         ], outputs=[grid.v])
         wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
             src.x, grid.v, self.obj, p["ground.height"], p["ground.normal"],
             int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
         ], outputs=[dst.x, dst.v, dst.C])
+
+    def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
+        """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
+
+        On a CUDA device the whole grid: a thread per node costs little there, and a box read
+        back every substep would stall the device and break the captured graphs. On the CPU
+        every thread costs, and the grid around a scene is mostly empty: there it is the box of
+        nodes that the particles' quadratic stencils reach, one node wider on every side for the
+        float32 rounding of the stencil's corner (``kernels.stencil_base``, whose clamp it
+        repeats). The passes skip empty nodes either way, and the CPU runs a launch's threads in
+        order, so the results are the same to the last bit.
+        """
+        if self.device != "cpu":
+            return (0, 0, 0), self.dims
+        x = state.x.numpy()
+        span = np.array([x.min(axis=0), x.max(axis=0)], dtype=np.float64)
+        if not np.all(np.isfinite(span)):
+            return (0, 0, 0), self.dims  # a diverging state: leave it to the frame's check
+        top = np.asarray(self.dims) - 3
+        base = np.clip(np.floor((span - self.lo) / self.dx - 0.5).astype(np.int64), 0, top)
+        box_lo = np.maximum(base[0] - 1, 0)
+        box_hi = np.minimum(base[1] + 3, top + 2)  # the stencil's last node, plus one
+        return tuple(int(v) for v in box_lo), tuple(int(v) for v in box_hi - box_lo + 1)
 
     def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
                dt: float) -> None:
