@@ -10,6 +10,12 @@ split into simulation forward, loss and backward), every estimated parameter aga
 ``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu, relative error otherwise)
 and the CD, EMD, IoU, PSNR and SSIM on the fitted and the held-out frames. ``--ablation`` adds a
 second fit with the scene-level (union) losses instead of the per-object ones.
+
+Two switches fit from a better model than the recording gives, to tell what the estimated
+geometry and the assumed densities cost the fit (as ``objective_scan.py`` does for its loss):
+``--true-particles`` (all objects, or ``--true-particles cube``) starts those objects from the
+recorder's own particles at the lifted frame, and ``--density truth`` (or ``--density
+sand=1600``) declares objects' densities at their true (or given) values.
 """
 
 from __future__ import annotations
@@ -23,15 +29,42 @@ import time
 from pathlib import Path
 
 import numpy as np
+from objective_scan import pairs, with_true_particles
 
 from mosiv_ros.cli import run_config
-from mosiv_ros.pipeline import RunConfig, run
+from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
 from mosiv_ros.report import jsonable
+from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
 
 
-def one(bag: Path, config: RunConfig, out: Path) -> dict:
+def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: list[str]):
+    """``prepare(bag)``, with the recorder's particles and declared densities where asked."""
+    prepared = prepare(bag, config)
+    if not true_particles and not density:
+        return prepared
+    truth = {o["name"]: o for o in read_ground_truth(bag)["objects"]}
+    if true_particles:
+        names = list(truth) if true_particles == "all" else true_particles.split(",")
+        unknown = sorted(set(names) - set(truth))
+        if unknown:
+            raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(truth)})")
+        prepared.lifted = with_true_particles(prepared.lifted, read_ground_truth_particles(bag),
+                                              [truth[n]["id"] for n in names])
+    values = ({n: float(o["params"]["density"]) for n, o in truth.items()} if density == ["truth"]
+              else {k: float(v) for k, v in pairs(density, "--density").items()})
+    declared = {o.name: o for o in prepared.recording.scene.objects}
+    unknown = sorted(set(values) - set(declared))
+    if unknown:
+        raise SystemExit(f"--density: no declared object {unknown} (declared: {sorted(declared)})")
+    for name, value in values.items():
+        declared[name].params["density"] = value
+    return prepared
+
+
+def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
+        density: list[str] | None = None) -> dict:
     start = time.perf_counter()
-    result = run(bag, out, config)
+    result = run_prepared(prepared_with(bag, config, true_particles, density or []), out, config)
     report = result.report
     fit = report["fit"]
     history = fit.get("history", [])
@@ -51,23 +84,29 @@ def main() -> int:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--params-file", type=Path, default=None)
     parser.add_argument("--ablation", action="store_true", help="also fit with scene-level losses")
+    parser.add_argument("--true-particles", nargs="?", const="all", default="",
+                        help="'all' or comma-separated object names")
+    parser.add_argument("--density", action="append", default=[], help="'truth' or object=kg/m^3")
     parser.add_argument("--out", type=Path, default=Path("out/identify_samples.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
     results = []
     for bag in args.bags:
-        results.append({"loss": "per_object", **one(bag, config, args.out.parent / bag.name)})
+        results.append({"loss": "per_object", **one(bag, config, args.out.parent / bag.name,
+                                                    args.true_particles, args.density)})
         print(json.dumps(jsonable(results[-1]))[:2000], flush=True)
         if args.ablation:
             union = dataclasses.replace(config, identify=dataclasses.replace(config.identify,
                                                                           per_object_loss=False))
             results.append({"loss": "scene_level",
-                            **one(bag, union, args.out.parent / f"{bag.name}_scene_level")})
+                            **one(bag, union, args.out.parent / f"{bag.name}_scene_level",
+                                  args.true_particles, args.density)})
             print(json.dumps(jsonable(results[-1]))[:2000], flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(jsonable({
         "benchmark": "identify_samples", "device": args.device, "host": platform.node(),
         "python": sys.version.split()[0], "params_file": str(args.params_file),
+        "true_particles": args.true_particles, "density": args.density,
         "results": results}), indent=1))
     print(f"wrote {args.out}")
     return 0

@@ -106,7 +106,12 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         progress: Callable[[str, int, int], None] | None = None) -> RunResult:
     """Run every stage on a recording; see the module docstring. progress(phase, done, total)."""
     config = config or RunConfig()
-    prepared = prepare(bag, config, progress)
+    return run_prepared(prepare(bag, config, progress), out, config, progress)
+
+
+def run_prepared(prepared: Prepared, out: str | Path, config: RunConfig,
+                 progress: Callable[[str, int, int], None] | None = None) -> RunResult:
+    """``run`` from the fit on: identification, twin, scores and report of a prepared recording."""
     identify = config.identify
     if not identify.window:
         window = fit_window(len(prepared.frames), config.holdout)
