@@ -29,12 +29,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from objective_scan import pairs, with_true_particles
+from objective_scan import asked_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
 from mosiv_ros.report import jsonable
-from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
+from mosiv_ros.synth.ground_truth import read_ground_truth
 
 
 def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: list[str]):
@@ -44,14 +44,8 @@ def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: li
         return prepared
     truth = {o["name"]: o for o in read_ground_truth(bag)["objects"]}
     if true_particles:
-        names = list(truth) if true_particles == "all" else true_particles.split(",")
-        unknown = sorted(set(names) - set(truth))
-        if unknown:
-            raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(truth)})")
-        prepared.lifted = with_true_particles(prepared.lifted, read_ground_truth_particles(bag),
-                                              [truth[n]["id"] for n in names])
-    values = ({n: float(o["params"]["density"]) for n, o in truth.items()} if density == ["truth"]
-              else {k: float(v) for k, v in pairs(density, "--density").items()})
+        prepared.lifted = with_true_particles_of(prepared.lifted, bag, true_particles, truth)
+    values = asked_densities(density, truth)
     declared = {o.name: o for o in prepared.recording.scene.objects}
     unknown = sorted(set(values) - set(declared))
     if unknown:

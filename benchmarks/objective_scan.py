@@ -80,6 +80,23 @@ def with_true_particles(lifted: LiftedParticles, truth: GroundTruthParticles,
     return dataclasses.replace(lifted, **{key: np.concatenate(value) for key, value in parts.items()})
 
 
+def with_true_particles_of(lifted: LiftedParticles, bag: Path, which: str,
+                           true_objects: dict[str, dict]) -> LiftedParticles:
+    """``with_true_particles`` for ``which``: 'all' or comma-separated object names."""
+    names = list(true_objects) if which == "all" else which.split(",")
+    unknown = sorted(set(names) - set(true_objects))
+    if unknown:
+        raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(true_objects)})")
+    return with_true_particles(lifted, read_ground_truth_particles(bag), [true_objects[n]["id"] for n in names])
+
+
+def asked_densities(items: list[str], true_objects: dict[str, dict]) -> dict[str, float]:
+    """``--density`` by object name: ['truth'] (each of ``true_objects`` at its true one) or name=kg/m^3."""
+    if items == ["truth"]:
+        return {name: float(obj["params"]["density"]) for name, obj in true_objects.items()}
+    return {k: float(v) for k, v in pairs(items, "--density").items()}
+
+
 def declare_true_effects(scene: Scene, truth: dict) -> None:
     """Add the recording's undeclared simulator effects to ``scene``, declared at their true values."""
     undeclared = [e for e in truth.get("effects", []) if not e.get("declared")]
@@ -127,20 +144,13 @@ def main() -> int:
         declare_true_effects(prepared.recording.scene, truth)
     lifted = prepared.lifted
     if args.true_particles:
-        names = list(true_objects) if args.true_particles == "all" else args.true_particles.split(",")
-        unknown = sorted(set(names) - set(true_objects))
-        if unknown:
-            raise SystemExit(f"--true-particles: no object {unknown} (objects: {sorted(true_objects)})")
-        lifted = with_true_particles(lifted, read_ground_truth_particles(args.bag),
-                                     [true_objects[n]["id"] for n in names])
+        lifted = with_true_particles_of(lifted, args.bag, args.true_particles, true_objects)
     window = fit_window(len(prepared.frames), args.holdout)
     views = views_of(prepared.recording)
     problem = build_problem(prepared.frames[:window], lifted, prepared.recording.scene, views,
                             prepared.recording.gripper_poses, problem_options(config.identify, views))
     problem.sim_config.device = args.device
-    densities = ({o.name: float(true_objects[o.name]["params"]["density"]) for o in problem.objects}
-                 if args.density == ["truth"]
-                 else {k: float(v) for k, v in pairs(args.density, "--density").items()})
+    densities = asked_densities(args.density, {o.name: true_objects[o.name] for o in problem.objects})
     for obj in problem.objects:
         if obj.name in densities:
             obj.params["density"] = densities.pop(obj.name)
