@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from objective_scan import asked_densities, with_true_particles_of
+from objective_scan import asked_densities, declare_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
@@ -45,13 +45,7 @@ def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: li
     truth = {o["name"]: o for o in read_ground_truth(bag)["objects"]}
     if true_particles:
         prepared.lifted = with_true_particles_of(prepared.lifted, bag, true_particles, truth)
-    values = asked_densities(density, truth)
-    declared = {o.name: o for o in prepared.recording.scene.objects}
-    unknown = sorted(set(values) - set(declared))
-    if unknown:
-        raise SystemExit(f"--density: no declared object {unknown} (declared: {sorted(declared)})")
-    for name, value in values.items():
-        declared[name].params["density"] = value
+    declare_densities(asked_densities(density, truth), prepared.recording.scene.objects)
     return prepared
 
 

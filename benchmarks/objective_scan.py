@@ -97,6 +97,16 @@ def asked_densities(items: list[str], true_objects: dict[str, dict]) -> dict[str
     return {k: float(v) for k, v in pairs(items, "--density").items()}
 
 
+def declare_densities(values: dict[str, float], objects) -> None:
+    """Set each named object's density (objects with ``name`` and ``params``); refuse other names."""
+    by_name = {o.name: o for o in objects}
+    unknown = sorted(set(values) - set(by_name))
+    if unknown:
+        raise SystemExit(f"--density: no object {unknown} (objects: {sorted(by_name)})")
+    for name, value in values.items():
+        by_name[name].params["density"] = value
+
+
 def declare_true_effects(scene: Scene, truth: dict) -> None:
     """Add the recording's undeclared simulator effects to ``scene``, declared at their true values."""
     undeclared = [e for e in truth.get("effects", []) if not e.get("declared")]
@@ -150,12 +160,8 @@ def main() -> int:
     problem = build_problem(prepared.frames[:window], lifted, prepared.recording.scene, views,
                             prepared.recording.gripper_poses, problem_options(config.identify, views))
     problem.sim_config.device = args.device
-    densities = asked_densities(args.density, {o.name: true_objects[o.name] for o in problem.objects})
-    for obj in problem.objects:
-        if obj.name in densities:
-            obj.params["density"] = densities.pop(obj.name)
-    if densities:
-        raise SystemExit(f"--density: no object {sorted(densities)}")
+    declare_densities(asked_densities(args.density, {o.name: true_objects[o.name] for o in problem.objects}),
+                      problem.objects)
     identifier = Identifier(problem, fit_settings(config.identify))
     labels = [entry.label for entry in identifier.entries]
 
