@@ -37,7 +37,7 @@ def generate_launch_description():
     ]
     pipeline = [
         Node(package="mosiv_ros", executable=name, name=name, output="screen",
-             parameters=[params_file] + ([{"scene": scene}] if name != "prediction_node" else []))
+             parameters=[params_file, {"scene": scene}])
         for name in PIPELINE
     ]
     replay = Node(
