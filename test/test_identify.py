@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -266,6 +267,19 @@ def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
                                      iterations=2, checkpoint_dir=str(tmp_path))
     result = Identifier(other, settings).run()
     assert len(result.history) == 2 * 2  # two stages of two iterations: started afresh
+
+
+def test_a_checkpoint_of_other_fit_settings_is_ignored(tmp_path):
+    # the scene-level ablation with the same checkpoint_dir must not resume the per-object fit
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
+                                       iterations=2, checkpoint_dir=str(tmp_path))
+    Identifier(problem, settings).run()
+    resumed: list[dict] = []
+    Identifier(problem, replace(settings, cpu_workers=1), progress=resumed.append).run()
+    assert resumed == []  # the same fit, only on fewer cores: nothing left to iterate
+    ablation: list[dict] = []
+    Identifier(problem, replace(settings, per_object_loss=False), progress=ablation.append).run()
+    assert len(ablation) == 2 * 2  # two stages of two iterations: started afresh
 
 
 def test_observations_and_problem_mismatches_are_clear_errors():

@@ -252,7 +252,7 @@ def _signature(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: 
         "points": [[len(g.occupancy) for _, g in sorted(f.objects.items())] for f in frames],
         "particles": len(lifted.x), "x": round(float(lifted.x.sum()), 6),
         "scene": scene_to_yaml(scene), "use_masks": options.use_masks, "fit_density": options.fit_density,
-        "settings": asdict(replace(settings, checkpoint_dir="", cpu_workers=0)),  # neither changes a score
+        "settings": settings.result_settings(),
     })
     return hashlib.sha256(text.encode()).hexdigest()
 

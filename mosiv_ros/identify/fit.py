@@ -57,7 +57,7 @@ import queue
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -112,6 +112,10 @@ class FitSettings:
     search_frames: int = 0
     cpu_workers: int = 0
     """Rows of a batch of losses simulated at once on the CPU, each on one core (0: every core)."""
+
+    def result_settings(self) -> dict:
+        """The settings a fit's result depends on: all but where it checkpoints and how many cores."""
+        return asdict(replace(self, checkpoint_dir="", cpu_workers=0))
 
 
 @dataclass
@@ -704,7 +708,7 @@ class Identifier:
             "free": [e.label for e in self.entries], "frames": obs.n_frames,
             "frame_dt": obs.frame_dt, "particles": int(len(self.index)),
             "centroids": np.round(np.nan_to_num(self.observed_centroids), 6).tolist(),
-            "settings": [self.settings.curriculum, self.settings.iterations, self.settings.windows],
+            "settings": self.settings.result_settings(),
         })
         return hashlib.sha256(text.encode()).hexdigest()
 
