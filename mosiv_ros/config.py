@@ -141,7 +141,17 @@ class PredictionConfig:
     device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
     horizon: float = _param(2.0, "Seconds to predict past the last observed frame.")
     frame_rate: float = _param(10.0, "Predicted frames per second.")
-    estimates_file: str = _param("", "Material estimates YAML written by identify_node; empty = use the topic.")
+    estimates: str = _param(
+        "", "The material estimates (YAML text). identify_node's output_yaml file sets it: "
+        "--params-file FILE. Empty: from /mosiv/material_estimates. Settable at run time.")
+    initial_velocities: str = _param(
+        "", "What-if request: new initial velocities by object, YAML {name: [vx, vy, vz]} in m/s "
+        "(six values add wx, wy, wz in rad/s). With a request, the prediction is every frame from "
+        "the first observed one. Empty: as identified. Settable at run time.")
+    swapped_params: str = _param(
+        "", "What-if request: material parameters replacing the identified ones, YAML {name: "
+        "{parameter: value}} in SI units (a friction angle as friction_angle_deg). Empty: as "
+        "identified. Settable at run time.")
     scene: str = _param("", SCENE_HELP)
 
 

@@ -14,6 +14,10 @@ curvature is not positive, so the data do not pin it down, or the standard devia
 factor of 2 for scale parameters or a quarter of the range for bounded ones); ERROR when the fit
 failed.
 
+The estimates file (``Estimates.write``, identify_node's ``output_yaml``) is a ROS 2 parameter
+file: its one parameter ``estimates`` carries the estimates document (YAML text) for any node,
+so that ``ros2 run mosiv_ros prediction_node --ros-args --params-file FILE`` predicts from it.
+
 What it is for: turning a ``FitResult`` into estimates, YAML and key-value pairs.
 What it is not for: the fit itself (``identify.fit``) or ROS messages (``nodes``).
 """
@@ -22,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +46,10 @@ VELOCITY_KEYS = ("vx", "vy", "vz", "wx", "wy", "wz")
 FAMILY_SCORE_PREFIX = "family_score."
 """Status key of a candidate family's held-out error: ``family_score.<family>`` (m)."""
 SCENE_STATUS = "mosiv/scene"
+FORMAT = "mosiv.estimates/1"
+"""``format`` of the estimates document."""
+PARAMETER = "estimates"
+"""The ROS parameter that carries the estimates document in an estimates file (prediction_node's)."""
 
 Status = tuple[str, str, str, str, list[tuple[str, str]]]
 """(name, hardware_id, level, message, key-value pairs): a DiagnosticStatus as plain data."""
@@ -100,11 +109,26 @@ class Estimates:
     scene_message: str = ""
 
     def to_yaml(self) -> str:
+        """The estimates document (YAML text): what the ``estimates`` parameter carries."""
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    @classmethod
+    def from_yaml(cls, text: str) -> Estimates:
+        """Estimates from the document ``to_yaml`` gives (ValueError if it is not one)."""
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as error:
+            raise ValueError(f"estimates are not valid YAML ({error})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"not a mosiv estimates document (a {type(data).__name__})")
+        try:
+            return cls.from_dict(data)
+        except (KeyError, TypeError, AttributeError) as error:
+            raise ValueError(f"malformed estimates document (at {error})") from None
 
     def to_dict(self) -> dict:
         return {
-            "format": "mosiv.estimates/1", "stamp_ns": self.stamp_ns, "frames": self.frames,
+            "format": FORMAT, "stamp_ns": self.stamp_ns, "frames": self.frames,
             "frame_dt": self.frame_dt,
             "objects": [{"id": o.id, "name": o.name, "family": o.family, "params": o.params,
                          "std": o.std, "loss": o.loss, "level": o.level, "message": o.message,
@@ -117,7 +141,7 @@ class Estimates:
 
     @classmethod
     def from_dict(cls, data: dict) -> Estimates:
-        if data.get("format") != "mosiv.estimates/1":
+        if data.get("format") != FORMAT:
             raise ValueError(f"not a mosiv estimates document (format {data.get('format')!r})")
         objects = [ObjectEstimate(int(o["id"]), o["name"], o["family"],
                                   {k: float(v) for k, v in o["params"].items()},
@@ -181,14 +205,30 @@ class Estimates:
                    int(meta.get("frames", 0)), float(meta.get("frame_dt", 0.0)), level, message)
 
     def write(self, path: str | Path) -> Path:
+        """Write the estimates file: a ROS 2 parameter file whose ``estimates`` is the document."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(self.to_yaml())
+        path.write_text(
+            f"# mosiv_ros material estimates ({FORMAT}), as a ROS 2 parameter file:\n"
+            f"#   ros2 run mosiv_ros prediction_node --ros-args --params-file {path.name}\n"
+            f"/**:\n  ros__parameters:\n    {PARAMETER}: |\n"
+            + textwrap.indent(self.to_yaml(), " " * 6))
         return path
 
     @classmethod
     def read(cls, path: str | Path) -> Estimates:
-        return cls.from_dict(yaml.safe_load(Path(path).read_text()))
+        """Estimates from a file ``write`` wrote (ValueError naming the file if it is not one)."""
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text())
+            text = data["/**"]["ros__parameters"][PARAMETER]
+        except (yaml.YAMLError, TypeError, KeyError):
+            raise ValueError(f"{path}: not a mosiv estimates file (a ROS 2 parameter file whose "
+                             f"'/**' node carries the parameter {PARAMETER!r})") from None
+        try:
+            return cls.from_yaml(text)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
 
 
 def coordinate_std(identifier: Identifier, result: FitResult,

@@ -131,7 +131,8 @@ class IdentifyNode(Node):
         self.estimates_pub.publish(diagnostics_msg(estimates.statuses(), estimates.stamp_ns))
         if self.config.output_yaml:
             path = estimates.write(self.config.output_yaml)
-            self.get_logger().info(f"estimates written to {path}")
+            self.get_logger().info(f"estimates written to {path} (prediction_node --ros-args "
+                                   f"--params-file {path})")
         for obj in estimates.objects:
             values = ", ".join(f"{k}={v:.4g}" for k, v in obj.params.items())
             self.get_logger().info(f"estimate {obj.name} ({obj.family}) {obj.level}: {values}")

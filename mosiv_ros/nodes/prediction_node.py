@@ -1,25 +1,35 @@
 """prediction_node: identified twin in, predicted object dynamics out, for planners.
 
-Subscribes to ``/mosiv/particles`` and ``/mosiv/material_estimates`` (both latched; or reads the
-estimates from ``estimates_file``). With both, it rolls the core's ``Twin`` from the first
-observed frame to ``horizon`` seconds past the fitted window and publishes, latched so that a
-planner joining later still gets them:
+Subscribes to ``/mosiv/particles`` and ``/mosiv/material_estimates`` (both latched; or takes the
+estimates from its parameter ``estimates``, which identify_node's estimates file sets:
+``--params-file FILE``). With both, it rolls the core's ``Twin`` from the first observed frame to
+``horizon`` seconds past the fitted window and publishes, latched so that a planner joining
+later still gets them:
 
 - ``/mosiv/predicted_objects``: sensor_msgs/PointCloud2 of every predicted frame after the
   window, fields x, y, z, object_id and ``t`` (seconds after the header stamp, the window's end);
 - ``/mosiv/predicted_paths/<object>``: nav_msgs/Path of each object's predicted centroid;
 - ``/mosiv/predicted_markers``: visualization_msgs/MarkerArray of those paths.
 
+What-if requests (parameters ``initial_velocities``, ``swapped_params``; see
+``predict.request``) roll the twin from the first observed frame with new initial velocities or
+parameters, and the same topics then carry every frame from the first observed one (header
+stamp) on. ``ros2 param set`` changes a request, the estimates, ``horizon`` or ``frame_rate`` at
+run time; a request naming an unknown object or parameter is refused with the reason, and the
+prediction is redone after every accepted change.
+
 Every new estimate replaces the prediction. Estimates with ERROR status are not rolled out.
 """
 
 from __future__ import annotations
 
-import threading
+from dataclasses import replace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
@@ -30,26 +40,33 @@ from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.nodes.common import LATCHED_QOS, declare_config, guarded, lifted_from_msg, main_for
 from mosiv_ros.nodes.outputs import markers_msg, path_msg, statuses_of
+from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.sim.errors import SimulationError
 
 NAME = "prediction_node"
 SUMMARY = "roll the identified digital twin forward and publish predicted object dynamics"
+FIXED_AT_START = {"device", "scene"}
+"""Parameters read once when the node starts; the others may be set at run time."""
 
 
 class PredictionNode(Node):
-    """Thin shell: particles + estimates to the core's ``Twin``, predictions out."""
+    """Thin shell: particles + estimates (+ a what-if request) to the core's ``Twin``, predictions out."""
 
     def __init__(self) -> None:
         super().__init__(NAME)
         self.config: PredictionConfig = declare_config(self, PredictionConfig)
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
+        self.request = WhatIf.parse(self.config.initial_velocities, self.config.swapped_params)
         self.types = rclpy_types()
         self.predicted_pub = self.create_publisher(PointCloud2, "/mosiv/predicted_objects", LATCHED_QOS)
         self.markers_pub = self.create_publisher(MarkerArray, "/mosiv/predicted_markers", LATCHED_QOS)
         self.path_pubs: dict[str, object] = {}
         self.particles: LiftedParticles | None = None
         self.estimates: Estimates | None = None
-        self.lock = threading.Lock()
+        self.twin: Twin | None = None
+        self.accepted: tuple[PredictionConfig, Estimates | None, WhatIf] | None = None
+        self.redo = None
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
             guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
@@ -58,31 +75,70 @@ class PredictionNode(Node):
             guarded(self, "/mosiv/material_estimates",
                     lambda msg: Estimates.from_statuses(statuses_of(msg)), self._on_estimates),
             LATCHED_QOS)
-        if self.config.estimates_file:
-            self._on_estimates(Estimates.read(self.config.estimates_file))
+        self.add_on_set_parameters_callback(self._on_set)
+        self.add_post_set_parameters_callback(self._on_changed)
+        if self.config.estimates:
+            self._on_estimates(Estimates.from_yaml(self.config.estimates))
 
     def _on_particles(self, particles: LiftedParticles) -> None:
-        self.particles = particles
+        self.particles, self.twin = particles, None
         self._predict()
 
     def _on_estimates(self, estimates: Estimates) -> None:
-        failed = [o.name for o in estimates.objects if o.level == ERROR]
-        if failed or not estimates.objects:
-            self.get_logger().warning(f"estimates unusable (failed: {failed or 'no objects'}); no prediction")
+        unusable = _unusable(estimates)
+        if unusable:
+            self.get_logger().warning(f"{unusable}; no prediction")
             return
-        self.estimates = estimates
+        self.estimates, self.twin = estimates, None
+        self._predict()
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        """Check a parameter change at run time; refuse it with the reason if it cannot be used."""
+        changed = {p.name: p.value for p in params}
+        fixed = sorted(set(changed) & FIXED_AT_START)
+        if fixed:
+            return SetParametersResult(successful=False, reason=f"{', '.join(fixed)}: read at start only")
+        try:
+            config = replace(self.config, **changed)
+            estimates = self.estimates
+            if changed.get("estimates"):
+                estimates = Estimates.from_yaml(config.estimates)
+                if _unusable(estimates):
+                    raise ValueError(_unusable(estimates))
+            request = WhatIf.parse(config.initial_velocities, config.swapped_params)
+            if estimates is not None:
+                request.check({o.name: o.family for o in estimates.objects})
+        except ValueError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self.accepted = (config, estimates, request)
+        return SetParametersResult(successful=True)
+
+    def _on_changed(self, _params: list[Parameter]) -> None:
+        """After an accepted change: use it, and predict again once the set call has returned."""
+        self.config, estimates, self.request = self.accepted
+        if estimates is not self.estimates:
+            self.estimates, self.twin = estimates, None
+        if self.redo is None:
+            self.redo = self.create_timer(0.01, self._predict_again)
+
+    def _predict_again(self) -> None:
+        self.destroy_timer(self.redo)
+        self.redo = None
         self._predict()
 
     def _predict(self) -> None:
-        with self.lock:
-            if self.particles is None or self.estimates is None:
-                return
-            try:
-                twin = Twin(self.particles, self.estimates, self.scene, device=self.config.device)
-                future = twin.future(self.config.horizon, self.config.frame_rate)
-            except (ValueError, RuntimeError) as error:
-                self.get_logger().error(f"prediction failed: {error}")
-                return
+        if self.particles is None or self.estimates is None:
+            return
+        try:
+            if self.twin is None:
+                self.twin = Twin(self.particles, self.estimates, self.scene, device=self.config.device)
+            if self.request:
+                future = self.twin.what_if(self.request, self.config.horizon, self.config.frame_rate)
+            else:
+                future = self.twin.future(self.config.horizon, self.config.frame_rate)
+        except (ValueError, RuntimeError, SimulationError) as error:
+            self.get_logger().error(f"prediction failed: {error}")
+            return
         if not len(future.times):
             self.get_logger().warning("the prediction has no frame past the observed window")
             return
@@ -97,9 +153,16 @@ class PredictionNode(Node):
                                                              LATCHED_QOS)
             self.path_pubs[name].publish(path_msg(stamps, centroids[:, k]))
         self.markers_pub.publish(markers_msg(future.names, centroids, stamps[0]))
+        what_if = f" (what-if: {self.request.describe()})" if self.request else ""
         self.get_logger().info(
             f"predicted {len(stamps)} frames ({future.times[0]:.2f}..{future.times[-1]:.2f} s after "
-            f"the first observed frame) for {', '.join(future.names)}")
+            f"the first observed frame) for {', '.join(future.names)}{what_if}")
+
+
+def _unusable(estimates: Estimates) -> str:
+    """Why estimates cannot be rolled out ('' if they can)."""
+    failed = [o.name for o in estimates.objects if o.level == ERROR]
+    return f"estimates unusable (failed: {failed or 'no objects'})" if failed or not estimates.objects else ""
 
 
 def main(args: list[str] | None = None) -> int:

@@ -4,7 +4,7 @@
 (``identify.estimates.Estimates``: material parameters, initial velocities, ground and effect
 parameters) and the scene declaration, and simulates from that first frame through the observed
 window and on past it. Requests can change the initial velocities or any object's parameters
-(swapped materials) before the rollout.
+(swapped materials) before the rollout (``what_if``, with a ``request.WhatIf``).
 
 What it is for: ``Twin.predict(seconds)`` -> ``Prediction`` (per-frame particle positions and
 centroid paths, with times). What it is not for: fitting, or ROS messages (``nodes``).
@@ -26,6 +26,7 @@ from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.lifting.simulation import to_sim_particles
+from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.sim import ObjectModel, SimConfig, Simulator, domain_around
 
 _LOG = logging.getLogger(__name__)
@@ -146,6 +147,17 @@ class Twin:
         finally:  # a request changes this prediction only
             for key, value in identified.items():
                 self.sim.params.set(key, value)
+
+    def what_if(self, request: WhatIf, horizon: float, frame_rate: float, progress=None) -> Prediction:
+        """A what-if prediction: the request's initial velocities and parameters, rolled out.
+
+        Every frame from the first observed one to ``horizon`` s past the window. ValueError if
+        the request names an unknown object, or a parameter its family lacks or out of range.
+        """
+        request.check({o.name: o.family for o in self.objects})
+        velocity = request.velocity(self.velocity, [o.name for o in self.objects])
+        whole = self.predict(self.window_seconds + horizon, velocity, request.params, progress)
+        return whole.after(0.0, frame_rate)
 
     def _rollout(self, seconds: float, velocity: np.ndarray, progress) -> Prediction:
         index = self.particles.object_index

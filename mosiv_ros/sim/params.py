@@ -61,6 +61,17 @@ class ParamSpec:
     size: int = 1
     families: tuple[str, ...] = ()
 
+    def in_range(self, value: float) -> bool:
+        """Whether ``value`` is finite and within the bounds as float32 stores them (as values are)."""
+        return bool(np.isfinite(value) and np.float32(self.lower) <= value <= np.float32(self.upper))
+
+    def out_of_range(self, value: float, where: str = "") -> ParameterError:
+        """The error for a ``value`` not ``in_range``; ``where`` names its object and batch."""
+        return ParameterError(
+            f"{self.name}{f' of {where}' if where else ''} = {value:g} {self.unit} is out "
+            f"of range [{self.lower:g}, {self.upper:g}] {self.unit} ({self.doc})"
+        )
+
     def default_vector(self) -> np.ndarray:
         value = np.atleast_1d(np.asarray(self.default, dtype=np.float64))
         if value.size != self.size:
@@ -204,12 +215,7 @@ class Parameters:
             obj = index[1] if spec.per_object else None
             if obj is not None and spec.families and self.families[obj] not in spec.families:
                 continue
-            # values are stored in float32: compare with the bounds as float32 stores them
-            if not (np.isfinite(value) and np.float32(spec.lower) <= value <= np.float32(spec.upper)):
+            if not spec.in_range(value):
                 where = f"object {self.object_names[obj]!r} ({self.families[obj]})" if obj is not None else ""
                 batch = f"parameter set {index[0]}" if self.n_batch > 1 else ""
-                context = ", ".join(s for s in (where, batch) if s)
-                raise ParameterError(
-                    f"{spec.name}{f' of {context}' if context else ''} = {value:g} {spec.unit} is out "
-                    f"of range [{spec.lower:g}, {spec.upper:g}] {spec.unit} ({spec.doc})"
-                )
+                raise spec.out_of_range(value, ", ".join(s for s in (where, batch) if s))

@@ -1,0 +1,162 @@
+"""Prediction for planners: the estimates file as a ROS 2 params file, what-if requests, the node."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+
+import numpy as np
+import pytest
+import rclpy
+from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+from rcl_interfaces.srv import SetParameters
+from rclpy.context import Context
+from rclpy.node import Node
+from sensor_msgs.msg import PointCloud2
+from test_nodes_process import LATCHED, Listener
+
+from mosiv_ros.graph import Graph, NodeSpec, executable_path
+from mosiv_ros.identify.estimates import WARN, Estimates, ObjectEstimate
+from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types, stamp_to_ns
+from mosiv_ros.nodes.common import lifted_from_msg
+from mosiv_ros.pipeline import RunConfig, prepare
+from mosiv_ros.predict.request import WhatIf
+from mosiv_ros.predict.twin import Twin
+
+
+def _estimates(stamp_ns: int) -> Estimates:
+    return Estimates([ObjectEstimate(1, "jelly", "elastic", {"E": 2e4, "nu": 0.3, "density": 1000.0},
+                                     {"E": 1.5e3, "nu": float("inf")}, 1e-5, WARN, "poorly identified: nu",
+                                     velocity=[0.3, 0.0, -0.4, 0.0, 0.0, 0.0])],
+                     {"ground.friction": 0.45}, {"ground.friction": float("nan")}, stamp_ns, 6, 0.1)
+
+
+@pytest.fixture(scope="module")
+def prepared(drop_bag):
+    return prepare(drop_bag, RunConfig())
+
+
+def test_estimates_file_round_trips_and_rclpy_reads_it_as_a_params_file(tmp_path):
+    estimates = _estimates(1_700_000_000_000_000_000)
+    path = estimates.write(tmp_path / "material_estimates.yaml")
+    assert Estimates.read(path).to_yaml() == estimates.to_yaml()  # inf and nan survive too
+    # what `ros2 run mosiv_ros prediction_node --ros-args --params-file FILE` gives the node
+    context = Context()
+    rclpy.init(args=["prediction_node", "--ros-args", "--params-file", str(path)], context=context)
+    try:
+        node = Node("prediction_node", context=context)
+        text = node.declare_parameter("estimates", "").value
+        node.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+    assert Estimates.from_yaml(text).to_yaml() == estimates.to_yaml()
+    (tmp_path / "plain.yaml").write_text(estimates.to_yaml())
+    with pytest.raises(ValueError, match="plain.yaml: not a mosiv estimates file"):
+        Estimates.read(tmp_path / "plain.yaml")
+    with pytest.raises(ValueError, match="malformed estimates document"):
+        Estimates.from_yaml("format: mosiv.estimates/1\nobjects: [{id: 1}]\n")
+
+
+def test_what_if_requests_are_parsed_by_object_and_refused_with_the_reason():
+    request = WhatIf.parse("{ball: [0.5, 0, 1.2]}", "{sand: {friction_angle_deg: 30}, ball: {E: 5.0e4}}")
+    assert request.velocities == {"ball": [0.5, 0.0, 1.2]}
+    assert request.params["sand"] == {"friction_angle": pytest.approx(math.radians(30))}
+    families = {"ball": "elastic", "sand": "sand"}
+    request.check(families)
+    identified = np.array([[0.1, 0.2, 0.3, 1.0, 2.0, 3.0], [0.0] * 6])
+    assert request.velocity(identified, ["ball", "sand"])[0].tolist() == [0.5, 0.0, 1.2, 1.0, 2.0, 3.0]
+    assert not WhatIf.parse("", " ") and "ball v=[0.5, 0.0, 1.2]" in request.describe()
+    for velocities, params, message in [
+        ("{ball: [1, 2]}", "", "ball: expected \\[vx, vy, vz\\]"),
+        ("{ball: [1, .nan, 0]}", "", "expected finite numbers"),
+        ("[1, 2, 3]", "", "initial_velocities: expected a mapping by object name"),
+        ("{ball: [1, 2", "", "initial_velocities: not valid YAML"),
+        ("", "{ball: 5}", "swapped_params: ball: expected a mapping"),
+        ("", "{ball: {E: true}}", "swapped_params: ball.E: expected finite numbers"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            WhatIf.parse(velocities, params)
+    for velocities, params, message in [
+        ("{cube: [1, 0, 0]}", "", "unknown object 'cube'; objects: ball, sand"),
+        ("", "{ball: {yield_stress: 900}}", "ball \\(elastic\\) has no parameter 'yield_stress'"),
+        ("", "{ball: {nu: 0.6}}", "nu of object 'ball' \\(elastic\\) = 0.6  is out of range"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            WhatIf.parse(velocities, params).check(families)
+
+
+def test_twin_what_if_rolls_from_the_first_observed_frame_with_the_request(prepared):
+    estimates = _estimates(prepared.frames[0].stamp_ns)
+    twin = Twin(prepared.lifted, estimates, prepared.recording.scene, device="cpu")
+    request = WhatIf.parse("{jelly: [1.0, 0.0, -0.4]}", "{jelly: {E: 2.0e3}}")
+    what_if = twin.what_if(request, horizon=0.2, frame_rate=10.0)
+    assert what_if.times[0] == 0.0 and what_if.times[-1] == pytest.approx(twin.window_seconds + 0.2)
+    direct = twin.predict(twin.window_seconds + 0.2, np.array([[1.0, 0.0, -0.4, 0.0, 0.0, 0.0]]),
+                          {"jelly": {"E": 2.0e3}})
+    np.testing.assert_array_equal(what_if.positions, direct.positions)  # frames 0.1 s apart: all
+    assert np.abs(what_if.positions[-1] - twin.predict(0.7).positions[-1]).max() > 0.05
+    assert twin.sim.params.get("E")[0, 0] == pytest.approx(2e4, rel=1e-6)  # the request is undone
+    with pytest.raises(ValueError, match="unknown object 'ball'"):
+        twin.what_if(WhatIf.parse("{ball: [1, 0, 0]}"), 0.2, 10.0)
+
+
+def _set(listener: Listener, client, name: str, value: str):
+    request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
+        type=ParameterType.PARAMETER_STRING, string_value=value))])
+    future = client.call_async(request)
+    assert listener.wait_for(future.done, 30), f"no reply to setting {name}"
+    return future.result().results[0]
+
+
+def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_requests(
+        drop_bag, prepared, tmp_path):
+    estimates = _estimates(prepared.frames[0].stamp_ns)
+    path = estimates.write(tmp_path / "material_estimates.yaml")
+    listener = Listener("test_planner")
+    try:
+        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+        cloud = prepared.lifted.to_cloud()
+        particles = pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id, prepared.frames[0].stamp_ns,
+                                      cloud.frame_id, cloud.fields)
+        publisher.publish(particles)
+        listener.subscribe(PathMsg, "/mosiv/predicted_paths/jelly", LATCHED)
+        client = listener.node.create_client(SetParameters, "/prediction_node/set_parameters")
+        # the estimates file is the node's params file, as `--params-file FILE` gives it
+        spec = NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 0.3, "device": "cpu"})
+        with Graph([spec], params_file=path, sink=None) as graph:
+            node = graph.nodes["prediction_node"]
+            node.wait_for_line("predicted", 120)
+            assert listener.wait_for(lambda: listener.received["/mosiv/predicted_paths/jelly"], 30)
+            identified = listener.received["/mosiv/predicted_paths/jelly"][0]
+            assert client.wait_for_service(timeout_sec=10)
+            # what `ros2 param set /prediction_node ...` does: refused with the reason, or taken
+            refused = _set(listener, client, "initial_velocities", "{cube: [1.0, 0.0, 0.0]}")
+            assert not refused.successful and "unknown object 'cube'; objects: jelly" in refused.reason
+            assert not _set(listener, client, "scene", "").successful  # read at start only
+            accepted = _set(listener, client, "initial_velocities", "{jelly: [1.0, 0.0, -0.4]}")
+            assert accepted.successful, accepted.reason
+            line = node.wait_for_line("what-if", 120)
+            assert "jelly v=[1.0, 0.0, -0.4]" in line
+            assert listener.wait_for(lambda: len(listener.received["/mosiv/predicted_paths/jelly"]) > 1, 30)
+            what_if = listener.received["/mosiv/predicted_paths/jelly"][-1]
+            assert node.process.poll() is None
+    finally:
+        listener.close()
+    stamps = [stamp_to_ns(p.header.stamp) for p in identified.poses]
+    assert stamps[0] >= estimates.stamp_ns + 5 * 100_000_000 - 1_000  # past the window (6 frames)
+    what_if_stamps = [stamp_to_ns(p.header.stamp) for p in what_if.poses]
+    assert what_if_stamps[0] == estimates.stamp_ns  # a what-if starts at the first observed frame
+    assert what_if_stamps[-1] == stamps[-1]
+    # the node published the core's what-if, from the particles it was sent
+    twin = Twin(lifted_from_msg(particles), estimates, prepared.recording.scene, device="cpu")
+    expected = twin.what_if(WhatIf.parse("{jelly: [1.0, 0.0, -0.4]}"), 0.3, 10.0).centroids()[:, 0]
+    got = [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in what_if.poses]
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+def test_prediction_node_refuses_unusable_estimates_at_start_with_one_clear_line():
+    result = subprocess.run([str(executable_path("prediction_node")), "--ros-args", "-p",
+                             "estimates:=nonsense"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert "prediction_node: error: not a mosiv estimates document (a str)" in result.stderr
