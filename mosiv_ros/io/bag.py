@@ -75,10 +75,10 @@ from mosiv_ros.io.messages import (
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
 from mosiv_ros.io.scene import SCENE_KEY, Scene, parse_scene, scene_to_yaml
 from mosiv_ros.io.streams import CameraFrameAssembler
+from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 
 _LOG = logging.getLogger(__name__)
 
-WORLD_FRAME = "world"
 TF_STATIC_TOPIC = "/tf_static"
 GRIPPER_POSE_TOPIC = "/gripper/pose"
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
@@ -334,7 +334,7 @@ def read_recording(path: str | Path, *, check_ids: bool = True) -> Recording:
     path = Path(path)
     scene = _read_scene(path)
     decoder = _Decoder(path)
-    transforms: dict[str, tuple[str, np.ndarray]] = {}  # child -> (parent, T_parent_child)
+    transforms = StaticTransforms()
     gripper: list[tuple[int, str, np.ndarray]] = []
     with _open_reader(path) as reader:
         topic_types = {name: info.msgtype or "" for name, info in reader.topics.items()}
@@ -349,8 +349,7 @@ def read_recording(path: str | Path, *, check_ids: bool = True) -> Recording:
             msg = decoder.message(topic, msgtype, raw)
             if topic == TF_STATIC_TOPIC:
                 for transform in msg.transforms:
-                    parent, child, T = decoder.convert(topic, transform, transform_from_msg)
-                    transforms[child] = (parent, T)
+                    transforms.add(*decoder.convert(topic, transform, transform_from_msg))
             elif topic == GRIPPER_POSE_TOPIC:
                 stamp, T = decoder.convert(topic, msg, pose_stamped_from_msg)
                 gripper.append((stamp, str(msg.header.frame_id), T))
@@ -359,13 +358,12 @@ def read_recording(path: str | Path, *, check_ids: bool = True) -> Recording:
                 _store(decoder, camera, attribute, topic, msg)
     if TF_STATIC_TOPIC not in topic_types:
         raise BagError(path, TF_STATIC_TOPIC, "topic missing: no camera extrinsics")
-    frames = _StaticFrames(path, transforms)
     recording = Recording(
-        cameras={name: _assemble(path, data, frames) for name, data in cameras.items()},
+        cameras={name: _assemble(path, data, transforms) for name, data in cameras.items()},
         scene=scene,
         gripper_poses=sorted(
             (
-                (stamp, frames.to_world(frame_id, GRIPPER_POSE_TOPIC) @ T)
+                (stamp, _to_world(path, transforms, frame_id, GRIPPER_POSE_TOPIC) @ T)
                 for stamp, frame_id, T in gripper
             ),
             key=lambda pose: pose[0],
@@ -427,7 +425,7 @@ def _unpaired(path: Path, topic: str, stamps: set[int], what: str) -> BagError:
     )
 
 
-def _assemble(path: Path, data: _CameraData, frames: _StaticFrames) -> Camera:
+def _assemble(path: Path, data: _CameraData, transforms: StaticTransforms) -> Camera:
     topics, name = data.topics, data.name
     color = data.stamps["color"]
     if not color:
@@ -456,7 +454,7 @@ def _assemble(path: Path, data: _CameraData, frames: _StaticFrames) -> Camera:
     if len(data.frame_ids) > 1:
         raise BagError(path, topics.color, f"images in several frames: {sorted(data.frame_ids)}")
     frame_id = data.frame_ids.pop() or f"{name}_optical"
-    return Camera(name, intrinsics, frames.to_world(frame_id, topics.color), camera_frames)
+    return Camera(name, intrinsics, _to_world(path, transforms, frame_id, topics.color), camera_frames)
 
 
 def _same_calibration(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
@@ -467,34 +465,17 @@ def _same_calibration(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
     )
 
 
-class _StaticFrames:
-    """The tree of static transforms, queried for T_world_frame along any chain."""
-
-    def __init__(self, path: Path, transforms: Mapping[str, tuple[str, np.ndarray]]) -> None:
-        self.path = path
-        self.neighbours: dict[str, list[tuple[str, np.ndarray]]] = defaultdict(list)
-        for child, (parent, T) in transforms.items():
-            self.neighbours[parent].append((child, T))
-            self.neighbours[child].append((parent, np.linalg.inv(T)))
-
-    def to_world(self, frame: str, asking_topic: str) -> np.ndarray:
-        """T_world_frame; BagError (on /tf_static, naming ``asking_topic``) if unreachable."""
-        known = {WORLD_FRAME: np.eye(4)}
-        queue = [WORLD_FRAME]
-        while queue and frame not in known:
-            current = queue.pop(0)
-            for neighbour, T in self.neighbours[current]:
-                if neighbour not in known:
-                    known[neighbour] = known[current] @ T
-                    queue.append(neighbour)
-        if frame not in known:
-            raise BagError(
-                self.path,
-                TF_STATIC_TOPIC,
-                f"no chain of static transforms from {WORLD_FRAME!r} to {frame!r} (needed by "
-                f"{asking_topic}); frames: {sorted(self.neighbours)}",
-            )
-        return known[frame]
+def _to_world(path: Path, transforms: StaticTransforms, frame: str, asking_topic: str) -> np.ndarray:
+    """T_world_frame; BagError (on /tf_static, naming ``asking_topic``) if unreachable."""
+    T = transforms.to_world(frame)
+    if T is None:
+        raise BagError(
+            path,
+            TF_STATIC_TOPIC,
+            f"no chain of static transforms from {WORLD_FRAME!r} to {frame!r} (needed by "
+            f"{asking_topic}); frames: {transforms.frames}",
+        )
+    return T
 
 
 def _check_mask_ids(path: Path, recording: Recording) -> None:

@@ -38,13 +38,13 @@ from mosiv_ros.io.messages import (
 from mosiv_ros.io.recording import Camera, FrameMatcher, FrameSet
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
+from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, declare_config, guarded, main_for
 from mosiv_ros.recon import Reconstructor
 
 NAME = "reconstruction_node"
 SUMMARY = "group multi-camera frames by stamp and reconstruct each object's geometry per frame"
 IMAGE_TOPICS = {"rgb": "color/image_raw", "mask": "instance_mask", "depth": "depth/image_rect"}
-WORLD = "world"
 MAX_UNCALIBRATED = 30
 """Frame sets kept while waiting for calibration; older ones are dropped with a warning."""
 BACKLOG_WARNING = 10
@@ -63,7 +63,7 @@ class ReconstructionNode(Node):
         self.types = rclpy_types()
         self.observed_pub = self.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
         self.assemblers: dict[str, CameraFrameAssembler] = {}
-        self.transforms: dict[str, tuple[str, object]] = {}
+        self.transforms = StaticTransforms()
         self.matcher: FrameMatcher | None = None
         self.reconstructor: Reconstructor | None = None
         self.uncalibrated: list[FrameSet] = []  # sets waiting, in order, for their calibration
@@ -142,8 +142,7 @@ class ReconstructionNode(Node):
 
     def _on_tf_static(self, msg: TFMessage) -> None:
         for transform in msg.transforms:
-            parent, child, matrix = transform_from_msg(transform)
-            self.transforms[child] = (parent, matrix)
+            self.transforms.add(*transform_from_msg(transform))
         self._drain_uncalibrated()
 
     def _drain_uncalibrated(self) -> None:
@@ -212,7 +211,7 @@ class ReconstructionNode(Node):
             self.get_logger().warning(
                 f"stamp {dropped.stamp_ns} ns: not reconstructed: no calibration for "
                 f"{', '.join(self._uncalibrated_cameras(dropped))} (needs CameraInfo and "
-                f"/tf_static {WORLD} -> <cam>_optical)")
+                f"/tf_static {WORLD_FRAME} -> <cam>_optical)")
         self._drain_uncalibrated()
 
     def _reconstruct(self, frame_set: FrameSet) -> None:
@@ -225,7 +224,7 @@ class ReconstructionNode(Node):
             self.get_logger().warning(message)
         cloud = observed.to_cloud()
         self.observed_pub.publish(pointcloud_to_msg(
-            self.types, cloud.xyz, cloud.object_id, cloud.stamp_ns, WORLD, cloud.fields))
+            self.types, cloud.xyz, cloud.object_id, cloud.stamp_ns, WORLD_FRAME, cloud.fields))
         self.published += 1
         self.seconds += observed.seconds
         self.get_logger().info(
@@ -234,7 +233,7 @@ class ReconstructionNode(Node):
 
     def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
         return [name for name in sorted(frame_set.frames)
-                if self.assemblers[name].intrinsics is None or self._world_pose(f"{name}_optical") is None]
+                if self.assemblers[name].intrinsics is None or self.transforms.to_world(f"{name}_optical") is None]
 
     def _calibrated(self, frame_set: FrameSet) -> bool:
         return not self._uncalibrated_cameras(frame_set)
@@ -246,7 +245,7 @@ class ReconstructionNode(Node):
         cameras = {}
         for name in sorted(self.assemblers):
             intrinsics = self.assemblers[name].intrinsics
-            pose = self._world_pose(f"{name}_optical")
+            pose = self.transforms.to_world(f"{name}_optical")
             if intrinsics is not None and pose is not None:
                 cameras[name] = Camera(name, intrinsics, pose)
         self.reconstructor = Reconstructor(cameras, self.config, self.scene)
@@ -258,18 +257,6 @@ class ReconstructionNode(Node):
         for message in self.reconstructor.notes:
             self.get_logger().warning(message)
         return self.reconstructor
-
-    def _world_pose(self, frame: str):
-        """T_world_frame along the chain of static transforms, or None while it is incomplete."""
-        T = None
-        for _ in range(len(self.transforms) + 1):
-            if frame == WORLD:
-                return T
-            if frame not in self.transforms:
-                return None
-            frame, T_parent_child = self.transforms[frame]
-            T = T_parent_child if T is None else T_parent_child @ T
-        return None
 
 
 def main(args: list[str] | None = None) -> int:

@@ -1,0 +1,45 @@
+"""The tree of static transforms (``/tf_static``), queried for T_world_frame along any chain.
+
+The bag reader (cameras and the gripper's frame) and reconstruction_node (cameras) place frames in
+the world with it, so that a recording read from disk and one received live follow one rule: a
+chain of static transforms, each usable in either direction, from ``world``, as tf2 resolves it.
+
+What it is for: static poses. Not for time-varying transforms (``/tf``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WORLD_FRAME = "world"
+
+
+class StaticTransforms:
+    """Static transforms by child frame; a transform published again replaces the old one."""
+
+    def __init__(self) -> None:
+        self.edges: dict[str, tuple[str, np.ndarray]] = {}
+
+    def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
+        self.edges[child] = (parent, np.asarray(T_parent_child, dtype=np.float64))
+
+    @property
+    def frames(self) -> list[str]:
+        """Every frame named so far, sorted."""
+        return sorted({WORLD_FRAME, *self.edges, *(parent for parent, _ in self.edges.values())})
+
+    def to_world(self, frame: str) -> np.ndarray | None:
+        """T_world_frame along any chain of the transforms, or None while there is none."""
+        neighbours: dict[str, list[tuple[str, np.ndarray]]] = {}
+        for child, (parent, T) in list(self.edges.items()):  # a snapshot: add() may run meanwhile
+            neighbours.setdefault(parent, []).append((child, T))
+            neighbours.setdefault(child, []).append((parent, np.linalg.inv(T)))
+        known = {WORLD_FRAME: np.eye(4)}
+        queue = [WORLD_FRAME]
+        while queue and frame not in known:
+            current = queue.pop(0)
+            for neighbour, T in neighbours.get(current, []):
+                if neighbour not in known:
+                    known[neighbour] = known[current] @ T
+                    queue.append(neighbour)
+        return known.get(frame)

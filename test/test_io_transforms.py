@@ -1,0 +1,43 @@
+"""The static transform tree shared by the bag reader and reconstruction_node."""
+
+import numpy as np
+
+from mosiv_ros.io.transforms import StaticTransforms
+
+
+def pose(yaw: float, t) -> np.ndarray:
+    T = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = t
+    return T
+
+
+def test_world_is_the_identity_even_with_no_transforms():
+    np.testing.assert_array_equal(StaticTransforms().to_world("world"), np.eye(4))
+
+
+def test_chain_resolves_up_and_down_a_tree_rooted_elsewhere():
+    T_rig_world, T_rig_link, T_link_cam = pose(0.3, [1, 2, 3]), pose(-1.0, [0, 0.1, 0]), pose(2.0, [0.5, 0, 0])
+    tree = StaticTransforms()
+    tree.add("rig", "world", T_rig_world)  # world is a child: its edge is walked backwards
+    tree.add("rig", "link", T_rig_link)
+    tree.add("link", "cam", T_link_cam)
+    expected = np.linalg.inv(T_rig_world) @ T_rig_link @ T_link_cam
+    np.testing.assert_allclose(tree.to_world("cam"), expected, atol=1e-12)
+    assert tree.frames == ["cam", "link", "rig", "world"]
+
+
+def test_unreachable_frame_is_none_until_its_chain_arrives():
+    tree = StaticTransforms()
+    tree.add("link", "cam", pose(0.5, [0, 0, 1]))
+    assert tree.to_world("cam") is None and tree.to_world("nowhere") is None
+    tree.add("world", "link", pose(0.0, [1, 0, 0]))
+    np.testing.assert_allclose(tree.to_world("cam")[:3, 3], [1, 0, 1], atol=1e-12)
+
+
+def test_a_transform_published_again_replaces_the_old_one():
+    tree = StaticTransforms()
+    tree.add("world", "cam", pose(0.0, [1, 0, 0]))
+    tree.add("world", "cam", pose(0.0, [0, 2, 0]))
+    np.testing.assert_allclose(tree.to_world("cam")[:3, 3], [0, 2, 0])
