@@ -110,6 +110,10 @@ class IdentifyConfig:
     search_starts: int = _param(
         3, "Best points of the first search round that each go through the further rounds.")
     search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")
+    max_modulus: float = _param(
+        1.0e6, "Pa: the fit keeps E and bulk moduli at or below it (WARN when one ends there). A stiffer "
+        "object hardly deforms at a reconstruction's millimetres and frame rate, and its simulation takes "
+        "more time steps (as the square root of the modulus).")
     uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")

@@ -232,6 +232,22 @@ def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step()
     assert result.values["E"][0] == pytest.approx(result.history[best - 1]["values"]["cube.E"], rel=1e-6)
 
 
+def test_a_modulus_stops_at_max_modulus_and_its_estimate_says_it_is_only_a_lower_bound():
+    # the true cube (20 kPa) is stiffer than the cap: Adam drives E up to 10 kPa and no further
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3}, ["E"], frames=8,
+                                      search_samples=0, curriculum=[0], iterations=6,
+                                      learning_rate=0.6, max_modulus=1e4)
+    identifier = Identifier(problem, settings)
+    result = identifier.run()
+    assert max(h["values"]["cube.E"] for h in result.history) <= 1e4 * (1 + 1e-12)
+    assert result.values["E"][0] == pytest.approx(1e4)
+    assert result.u[0] == pytest.approx(np.log(1e4))  # projected: u does not drift on past it
+    estimate = estimates_of(identifier, result).objects[0]
+    assert estimate.level == WARN and estimate.message == "poorly identified: E (at the fit's bound 1e+04)"
+    with pytest.raises(ValueError, match="max_modulus must exceed E's lower bound 100 Pa, got 50"):
+        Identifier(problem, replace(settings, max_modulus=50.0))
+
+
 class _Stop(Exception):
     pass
 

@@ -65,6 +65,21 @@ class Coordinate:
             return self.lower + (self.upper - self.lower) * s
         return np.clip(u, self.lower, self.upper)
 
+    def clip_u(self, u: float) -> float:
+        """The coordinate moved inside the range whose theta is in [lower, upper] (a logit's: all of R)."""
+        if self.kind == "log":
+            return float(np.clip(u, np.log(self.lower + self.offset), np.log(self.upper + self.offset)))
+        if self.kind == "linear":
+            return float(np.clip(u, self.lower, self.upper))
+        return float(u)
+
+    def at_bound(self, theta: float) -> bool:
+        """Whether theta sits on a bound: the fit was held there, the data may want it further."""
+        if self.kind == "logit":
+            return False  # a sigmoid never reaches its bounds
+        tolerance = 1e-9 * max(abs(theta), 1e-12)
+        return bool(theta <= self.lower + tolerance or theta >= self.upper - tolerance)
+
     def dtheta_du(self, u: np.ndarray) -> np.ndarray:
         """Derivative of theta(u): chains a value gradient into u and a u-std into theta."""
         u = np.asarray(u, dtype=np.float64)

@@ -11,8 +11,9 @@ Hessian), which can make a standard deviation optimistic when two parameters tra
 Status per object, and for the scene's own parameters (ground, effects), as in diagnostic_msgs
 (``OK``, ``WARN``, ``ERROR``): WARN when one of its parameters is poorly identified (the
 curvature is not positive, so the data do not pin it down, or the standard deviation exceeds a
-factor of 2 for scale parameters or a quarter of the range for bounded ones); ERROR when the fit
-failed.
+factor of 2 for scale parameters or a quarter of the range for bounded ones) or ended on a bound
+of the fit (a modulus at ``max_modulus``: the data show only that the object is at least that
+stiff); ERROR when the fit failed.
 
 The estimates file (``Estimates.write``, identify_node's ``output_yaml``) is a ROS 2 parameter
 file: its one parameter ``estimates`` carries the estimates document (YAML text) for any node,
@@ -268,13 +269,15 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
         sigma_u = float(std_u[j]) if std_u is not None else float("nan")
         sigma = sigma_u * float(entry.coordinate.dtheta_du(result.u[j]))
         poor = _poorly_identified(entry.coordinate, sigma_u, sigma)
+        if entry.coordinate.at_bound(theta):
+            poor = f"at the fit's bound {theta:.3g}"
         if entry.per_object:
             per_object[problem.objects[entry.index[1]].name][entry.name] = (theta, sigma, poor)
         else:
             scene[entry.label] = theta
             scene_std[entry.label] = sigma
             if poor:
-                scene_poor.append(entry.label)
+                scene_poor.append(_poor(entry.label, poor))
     for k, obj in enumerate(problem.objects):
         params = {name: float(identifier.sim.params.get(name)[0, k])
                   for name in FAMILY_PARAMS[obj.family]}
@@ -283,7 +286,7 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
             params[name] = theta
             std[name] = sigma
             if bad:
-                poor.append(name)
+                poor.append(_poor(name, bad))
         level, message = OK, "fitted"
         if obj.name in failed:
             level, message = ERROR, failed[obj.name]
@@ -296,6 +299,11 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
     scene_level, scene_message = (WARN, f"poorly identified: {', '.join(scene_poor)}") if scene_poor else (OK, "fitted")
     return Estimates(objects, scene, scene_std, obs.start_ns, obs.n_frames, obs.frame_dt,
                      scene_level, scene_message)
+
+
+def _poor(name: str, why: bool | str) -> str:
+    """A poorly identified parameter's name, with why when it is not its uncertainty."""
+    return f"{name} ({why})" if isinstance(why, str) else name
 
 
 def _poorly_identified(coordinate: Coordinate, sigma_u: float, sigma: float) -> bool:

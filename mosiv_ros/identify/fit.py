@@ -5,7 +5,10 @@ material parameters, ground and effect parameters, and each object's initial lin
 velocity) to its observations with Adam on the simulator's gradients:
 
 - coordinates: each parameter moves in ``identify.coordinates`` (log for moduli, bounded logits
-  for nu and friction), velocities in m/s and rad/s;
+  for nu and friction), velocities in m/s and rad/s; Adam's steps are projected back into each
+  coordinate's range, whose top for E and the bulk modulus is ``max_modulus`` (1 MPa): along a
+  direction the data leave flat a modulus would otherwise climb on, and each iteration's cost
+  with it (the time step shrinks as 1 / sqrt(modulus));
 - initial velocities start from the observed centroid motion of the first frames (an object
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
 - before Adam, a gradient-free search, all its candidates simulated in batched rollouts of
@@ -85,8 +88,11 @@ SEARCH_RANGES = {
     "friction": (0.05, 1.5),
 }
 """Prior ranges (SI) of the material parameters that the global search samples: soft solids,
-clays, sands and liquids a robot handles. Adam may leave them; stiffer solids than 1 MPa barely
-deform at the resolution of a few-millimetre reconstruction anyway."""
+clays, sands and liquids a robot handles. Adam may leave them, the moduli only up to
+``FitSettings.max_modulus``."""
+
+MODULI = ("E", "bulk_modulus")
+"""Parameters that set the stable time step through the wave speed: ``max_modulus`` caps them."""
 
 
 @dataclass
@@ -110,6 +116,8 @@ class FitSettings:
     search_starts: int = 1
     search_decades: float = 1.0
     search_frames: int = 0
+    max_modulus: float = 1.0e6
+    """Pa: E and the bulk modulus stay at or below it (a fitted value there is only a lower bound)."""
     cpu_workers: int = 0
     """Rows of a batch of losses simulated at once on the CPU, each on one core (0: every core)."""
 
@@ -249,6 +257,11 @@ class Identifier:
             name, component = _component(free_name)
             spec = params.spec(name)
             coordinate = Coordinate.for_spec(spec)
+            if name in MODULI:
+                if not self.settings.max_modulus > coordinate.lower:
+                    raise ValueError(f"max_modulus must exceed {name}'s lower bound {coordinate.lower:g} "
+                                     f"Pa, got {self.settings.max_modulus:g}")
+                coordinate = replace(coordinate, upper=min(coordinate.upper, self.settings.max_modulus))
             if spec.per_object:
                 for k, obj in enumerate(self.problem.objects):
                     uses = name in FAMILY_PARAMS[obj.family] or name not in MATERIAL_PARAM_NAMES
@@ -630,7 +643,9 @@ class Identifier:
                     dv[:] = 0.0
                 dv[~moving] = 0.0  # an object found at rest stays at rest at t = 0
                 step = adam.step(np.concatenate([du, dv.ravel()]))
-                u, velocity = u + step[: len(u)], velocity + step[len(u):].reshape(velocity.shape)
+                moved = self._project(u + step[: len(u)])
+                adam.last[: len(u)] = moved - u  # the step taken, for an undo
+                u, velocity = moved, velocity + step[len(u):].reshape(velocity.shape)
                 record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
                           "loss": loss, "values": self._values_of(u),
                           "seconds": time.perf_counter() - tick, **self.timing}
@@ -695,6 +710,13 @@ class Identifier:
             if len(point_u) and not np.array_equal(point_u, u):
                 return point_u.copy(), point_velocity.copy(), f"back to {label}"
         return u, velocity, "nothing to undo"
+
+    def _project(self, u: np.ndarray) -> np.ndarray:
+        """The coordinates moved back inside their ranges (projected Adam).
+
+        Past a bound theta stops changing, so u would drift on where nothing pulls it back.
+        """
+        return np.array([e.coordinate.clip_u(v) for e, v in zip(self.entries, u, strict=True)])
 
     def _values_of(self, u: np.ndarray) -> dict[str, float]:
         return {e.label: float(e.coordinate.to_theta(v)) for e, v in zip(self.entries, u, strict=True)}

@@ -63,7 +63,7 @@ def fit_settings(config: IdentifyConfig) -> FitSettings:
         windows=config.windows, search_samples=config.search_samples,
         search_rounds=config.search_rounds,
         search_starts=config.search_starts, search_frames=config.search_frames,
-        cpu_workers=config.cpu_workers)
+        max_modulus=config.max_modulus, cpu_workers=config.cpu_workers)
 
 
 def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
