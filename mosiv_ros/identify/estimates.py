@@ -263,30 +263,29 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
     failed = failed or {}
     objects = []
     scene, scene_std, scene_poor = {}, {}, []
-    per_object: dict[str, dict[str, tuple[float, float, bool]]] = {o.name: {} for o in problem.objects}
+    per_object: dict[str, dict[str, tuple[float, float, bool, str]]] = {o.name: {} for o in problem.objects}
     for j, entry in enumerate(result.entries):
         theta = float(entry.coordinate.to_theta(result.u[j]))
         sigma_u = float(std_u[j]) if std_u is not None else float("nan")
         sigma = sigma_u * float(entry.coordinate.dtheta_du(result.u[j]))
-        poor = _poorly_identified(entry.coordinate, sigma_u, sigma)
-        if entry.coordinate.at_bound(theta):
-            poor = f"at the fit's bound {theta:.3g}"
+        bound = f" (at the fit's bound {theta:.3g})" if entry.coordinate.at_bound(theta) else ""
+        poor = bool(bound) or _poorly_identified(entry.coordinate, sigma_u, sigma)
         if entry.per_object:
-            per_object[problem.objects[entry.index[1]].name][entry.name] = (theta, sigma, poor)
+            per_object[problem.objects[entry.index[1]].name][entry.name] = (theta, sigma, poor, bound)
         else:
             scene[entry.label] = theta
             scene_std[entry.label] = sigma
             if poor:
-                scene_poor.append(_poor(entry.label, poor))
+                scene_poor.append(entry.label + bound)
     for k, obj in enumerate(problem.objects):
         params = {name: float(identifier.sim.params.get(name)[0, k])
                   for name in FAMILY_PARAMS[obj.family]}
         std, poor = {}, []
-        for name, (theta, sigma, bad) in per_object[obj.name].items():
+        for name, (theta, sigma, bad, bound) in per_object[obj.name].items():
             params[name] = theta
             std[name] = sigma
             if bad:
-                poor.append(_poor(name, bad))
+                poor.append(name + bound)
         level, message = OK, "fitted"
         if obj.name in failed:
             level, message = ERROR, failed[obj.name]
@@ -299,11 +298,6 @@ def estimates_of(identifier: Identifier, result: FitResult, std_u: np.ndarray | 
     scene_level, scene_message = (WARN, f"poorly identified: {', '.join(scene_poor)}") if scene_poor else (OK, "fitted")
     return Estimates(objects, scene, scene_std, obs.start_ns, obs.n_frames, obs.frame_dt,
                      scene_level, scene_message)
-
-
-def _poor(name: str, why: bool | str) -> str:
-    """A poorly identified parameter's name, with why when it is not its uncertainty."""
-    return f"{name} ({why})" if isinstance(why, str) else name
 
 
 def _poorly_identified(coordinate: Coordinate, sigma_u: float, sigma: float) -> bool:
