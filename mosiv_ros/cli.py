@@ -73,18 +73,21 @@ def cmd_make_sample_bag(args: argparse.Namespace) -> int:
 
 
 def _progress_bars():
-    """A progress(phase, done, total) callback drawing one tqdm bar per phase, and a closer."""
+    """A ``mosiv_ros.progress`` callback drawing a tqdm bar per phase, and a closer.
+
+    tqdm shows each phase's time left, from its rate so far.
+    """
     from tqdm import tqdm
 
     bars: dict[str, tqdm] = {}
 
-    def progress(phase: str, done: int, total: int) -> None:
+    def progress(phase: str, done: int, total: int, unit: str) -> None:
         bar = bars.get(phase)
-        if bar is None or bar.total != total or done < bar.n:
+        if bar is None or done < bar.n:
             if bar is not None:
                 bar.close()
-            bar = bars[phase] = tqdm(total=total, desc=phase, unit="frame" if phase != "scenes" else "scene",
-                                     leave=False)
+            bar = bars[phase] = tqdm(total=total, desc=phase, unit=unit, leave=False)
+        bar.total = total  # the search's total is known once its first round has ended
         bar.update(done - bar.n)
 
     def close() -> None:
@@ -236,12 +239,12 @@ def cmd_graph(args: argparse.Namespace) -> int:
     specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
                                               "wait_for_subscribers": 1}))
     with Graph(specs, params_file=args.params_file) as graph:
-        replay = graph.nodes["bag_replay_node"].process
-        try:
-            code = replay.wait(args.timeout)
-            graph.nodes["identify_node"].wait_for_line("identification done",
-                                                       args.timeout - (time.perf_counter() - start))
-            graph.nodes["prediction_node"].wait_for_line("predicted", 120)
+        try:  # a node that fails on the way ends the wait at once, saying which and how
+            graph.wait_for_line("identify_node", "identification done",
+                                args.timeout - (time.perf_counter() - start))
+            graph.wait_for_line("prediction_node", "predicted", 120)
+            code = graph.nodes["bag_replay_node"].process.wait(
+                max(1.0, args.timeout - (time.perf_counter() - start)))
         except (subprocess.TimeoutExpired, GraphError) as error:
             print(f"mosiv graph: the graph did not finish: {error}", file=sys.stderr)
             return 1

@@ -15,6 +15,7 @@ import logging
 import os
 import signal
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -32,7 +33,21 @@ READY_TIMEOUT = 60.0
 
 
 class GraphError(RuntimeError):
-    """A node process could not be found, started or stopped."""
+    """A node process could not be found, started or stopped, or failed while running."""
+
+
+class NodeExited(GraphError):
+    """A node process exited while something was waiting for it."""
+
+
+def exit_description(code: int) -> str:
+    """'exited with code 2', or 'was killed by SIGABRT' for a process a signal ended."""
+    if code < 0:
+        try:
+            return f"was killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"was killed by signal {-code}"
+    return f"exited with code {code}"
 
 
 def package_prefix() -> Path:
@@ -69,6 +84,12 @@ class NodeSpec:
     parameters: dict[str, Any] = field(default_factory=dict)
 
 
+def print_line(line: str) -> None:
+    """Print one line to stdout in one write: the reader threads of several nodes share it."""
+    sys.stdout.write(line + "\n")
+    sys.stdout.flush()
+
+
 class NodeProcess:
     """A running node: its process, and the output lines it has printed so far."""
 
@@ -95,9 +116,16 @@ class NodeProcess:
             if self._sink is not None:
                 self._sink(f"[{self.name}] {line}")
 
-    def wait_for_line(self, text: str, timeout: float) -> str:
-        """Block until the process prints a line containing ``text``; return that line."""
-        deadline = time.monotonic() + timeout
+    def wait_for_line(self, text: str, timeout: float,
+                      check: Callable[[], None] | None = None) -> str:
+        """Block until the process prints a line containing ``text``; return that line.
+
+        Raises ``NodeExited`` as soon as the process has exited without printing it, and
+        ``GraphError`` when ``timeout`` seconds pass; ``check`` (called a few times a second)
+        may raise to stop the wait early, e.g. when another node of the graph has failed.
+        """
+        began = time.monotonic()
+        deadline = began + timeout
         seen = 0
         with self._new_line:
             while True:
@@ -105,23 +133,31 @@ class NodeProcess:
                     if text in line:
                         return line
                 seen = len(self.lines)
+                if self.process.poll() is not None and not self._reader.is_alive():
+                    raise NodeExited(
+                        f"{self.name} {exit_description(self.process.returncode)} before printing "
+                        f"a line containing {text!r} (waited {time.monotonic() - began:.0f} s); "
+                        "last lines:\n" + self.tail())
                 remaining = deadline - time.monotonic()
-                if remaining <= 0 or (self.process.poll() is not None and not self._reader.is_alive()):
+                if remaining <= 0:
                     raise GraphError(
                         f"{self.name} printed no line containing {text!r} within {timeout:.0f} s "
-                        f"(exit code {self.process.poll()}); last lines:\n" + "\n".join(self.lines[-20:])
-                    )
+                        "and is still running; last lines:\n" + self.tail())
+                if check is not None:
+                    check()
                 self._new_line.wait(min(remaining, 0.2))
+
+    def tail(self, n: int = 20) -> str:
+        """The last ``n`` lines the process printed."""
+        return "\n".join(self.lines[-n:])
 
     def wait_ready(self, timeout: float) -> bool:
         """Wait for the node's '<name> ready' line: True, or False if it exited first."""
         try:
             self.wait_for_line(f"{self.name} ready", timeout)
             return True
-        except GraphError:
-            if self.process.poll() is not None:
-                return False
-            raise
+        except NodeExited:
+            return False
 
     def stop(self, timeout: float) -> int:
         """SIGINT (a clean rclpy shutdown), then SIGTERM, then SIGKILL; return the exit code."""
@@ -149,7 +185,7 @@ class Graph:
         *,
         params_file: Path | None = None,
         env: dict[str, str] | None = None,
-        sink: Callable[[str], None] | None = print,
+        sink: Callable[[str], None] | None = print_line,
     ) -> None:
         self.specs = specs
         self.params_file = Path(params_file) if params_file else default_params_file()
@@ -179,6 +215,22 @@ class Graph:
             node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
             node.wait_ready(READY_TIMEOUT)
         return self
+
+    def wait_for_line(self, name: str, text: str, timeout: float) -> str:
+        """``NodeProcess.wait_for_line`` on node ``name``, also stopped by another node's failure.
+
+        The wait ends, with the reason, as soon as any other node of the graph exits with a code
+        other than 0.
+        """
+
+        def others_alive() -> None:
+            for other, node in self.nodes.items():
+                code = node.process.poll()
+                if other != name and code not in (None, 0):
+                    raise NodeExited(f"{other} {exit_description(code)} while waiting for {name} "
+                                     f"to print {text!r}; its last lines:\n" + node.tail())
+
+        return self.nodes[name].wait_for_line(text, timeout, others_alive)
 
     def stop(self, timeout: float = 5.0) -> dict[str, int]:
         """Stop every node, last started first; return their exit codes."""

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.recording import Recording
 from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame, iter_reconstruct
 from mosiv_ros.report import write_report
 from mosiv_ros.sim.errors import SimulationError
@@ -80,20 +80,22 @@ def fit_window(frames: int, holdout: float) -> int:
 
 
 def prepare(bag: str | Path, config: RunConfig,
-            progress: Callable[[str, int, int], None] | None = None) -> Prepared:
+            progress: Progress | None = None) -> Prepared:
     """Reconstruct every frame set and lift the first complete one."""
     timing: dict[str, float] = {}
     tick = time.perf_counter()
     recording = read_recording(bag)
     frames = []
     n_sets = min(len(c.frames) for c in recording.cameras.values())
+    _LOG.info("stage 1, reconstruction: %d frame sets", n_sets)
     for frame in iter_reconstruct(recording, config.reconstruction, recording.scene):
         frames.append(frame)
         if progress:
-            progress("reconstruct", len(frames), n_sets)
+            progress("reconstruct", len(frames), n_sets, "frame")
     timing["reconstruct_s"] = time.perf_counter() - tick
     if len(frames) < 3:
         raise BagError(bag, None, f"only {len(frames)} frame sets: need at least 3 to fit and test")
+    _LOG.info("stage 2, lifting")
     tick = time.perf_counter()
     lifted = lift_first_complete(frames, config.lifting, recording.scene)
     timing["lift_s"] = time.perf_counter() - tick
@@ -103,24 +105,26 @@ def prepare(bag: str | Path, config: RunConfig,
 
 
 def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
-        progress: Callable[[str, int, int], None] | None = None) -> RunResult:
-    """Run every stage on a recording; see the module docstring. progress(phase, done, total)."""
+        progress: Progress | None = None) -> RunResult:
+    """Run every stage on a recording; see the module docstring; ``progress`` as in ``mosiv_ros.progress``."""
     config = config or RunConfig()
     return run_prepared(prepare(bag, config, progress), out, config, progress)
 
 
 def run_prepared(prepared: Prepared, out: str | Path, config: RunConfig,
-                 progress: Callable[[str, int, int], None] | None = None) -> RunResult:
+                 progress: Progress | None = None) -> RunResult:
     """``run`` from the fit on: identification, twin, scores and report of a prepared recording."""
     identify = config.identify
     if not identify.window:
         window = fit_window(len(prepared.frames), config.holdout)
         identify = replace(identify, window=window)
+    _LOG.info("stage 3, identification: the first %d of %d frames", identify.window,
+              len(prepared.frames))
     tick = time.perf_counter()
     identification = identify_objects(prepared.frames, prepared.lifted, prepared.recording.scene,
                                       identify, views_of(prepared.recording),
                                       prepared.recording.gripper_poses,
-                                      phase_progress(progress, identify, "identify"))
+                                      phase_progress(progress, "identify"))
     prepared.timing["identify_s"] = time.perf_counter() - tick
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -145,9 +149,11 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | P
     scene = prepared.recording.scene
     twin = Twin(prepared.lifted, estimates, scene, device=config.prediction.device)
     seconds = (len(prepared.frames) - 1) * estimates.frame_dt + config.prediction.horizon
+    _LOG.info("prediction: the twin over the recording and %.1f s past it", config.prediction.horizon)
     prediction = twin.predict(seconds)
     timing["predict_s"] = time.perf_counter() - tick
     truth, truth_particles = ground_truth_if_any(prepared.bag)
+    _LOG.info("scoring the twin%s", " (re-rendering every view)" if config.render else "")
     tick = time.perf_counter()
     scores = score_frames(prediction, prepared.frames, prepared.recording, window,
                           prepared.lifted.lattice_volume ** (1 / 3), truth_particles, config.render)

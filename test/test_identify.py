@@ -10,11 +10,14 @@ import numpy as np
 import pytest
 from sim_scenes import scene
 
+from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
 from mosiv_ros.identify.observations import Observations, View
+from mosiv_ros.identify.run import fit_problem, phase_progress
+from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.sim import Ground, ObjectModel, Particles
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.sim.errors import SimulationDiverged
@@ -260,7 +263,9 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
     reference = Identifier(*_jelly_problem(*args, frames=8, search_rounds=1, iterations=4)).run()
 
     def stop_after_five(record):
-        if len([r for r in seen if r]) >= 4:
+        if record["phase"] != "fit":  # the search's progress
+            return
+        if len(seen) >= 4:
             raise _Stop
         seen.append(record)
 
@@ -295,7 +300,8 @@ def test_a_checkpoint_of_other_fit_settings_is_ignored(tmp_path):
     assert resumed == []  # the same fit, only on fewer cores: nothing left to iterate
     ablation: list[dict] = []
     Identifier(problem, replace(settings, per_object_loss=False), progress=ablation.append).run()
-    assert len(ablation) == 2 * 2  # two stages of two iterations: started afresh
+    assert len([r for r in ablation if r["phase"] == "fit"]) == 2 * 2  # two stages of two iterations: afresh
+    assert ablation[0]["phase"] == "search"  # afresh, so the search ran again
 
 
 def test_observations_and_problem_mismatches_are_clear_errors():
@@ -510,3 +516,38 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     poor = cube.message.removeprefix("poorly identified: ").split(", ")
     assert "friction" in poor and "E" not in poor  # nu is near the edge: flagged on some machines
     assert cube.std["E"] == pytest.approx(std[0] * cube.params["E"], rel=1e-6)  # d E / d log E = E
+
+
+@pytest.mark.slow
+def test_a_fit_reports_search_iterations_and_uncertainty_each_up_to_its_total():
+    problem, _ = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5)
+    config = IdentifyConfig(curriculum=[2, 0], iterations=2, search_samples=4, search_rounds=1,
+                            search_starts=2, uncertainty=True, device="cpu")
+    records: list[dict] = []
+    fit_problem(problem, config, records.append)
+    phases = [r["phase"] for r in records]
+    assert phases == sorted(phases, key=["search", "fit", "uncertainty"].index)  # in that order
+    for phase in ("search", "fit", "uncertainty"):
+        done = [r["done"] for r in records if r["phase"] == phase]
+        total = {r["total"] for r in records if r["phase"] == phase}
+        assert done == sorted(done) and done[-1] in total and len(total) == 1, (phase, done, total)
+    assert records[-1]["total"] == 1 + 2 * len(problem.free)  # E and nu: a step either way along each
+    assert [r["done"] for r in records if r["phase"] == "fit"] == [1, 2, 3, 4]
+    bars: list[tuple] = []
+    relay = phase_progress(lambda *args: bars.append(args), "identify")
+    for record in records:
+        relay(record)
+    assert bars[:2] == [("identify: search", 0, 4 * (1 + 2), "sample"), ("identify: search", 4, 12, "sample")]
+    assert ("identify", 4, 4, "iteration") in bars and bars[-1][0] == "identify: uncertainty"
+
+
+def test_time_left_follows_the_rate_since_a_phases_first_report():
+    now = [0.0]
+    left = TimeLeft(clock=lambda: now[0])
+    assert left("fit", 1, 10) is None  # no rate yet
+    now[0] = 4.0
+    assert left("fit", 3, 10) == pytest.approx(14.0)  # 2 units in 4 s, 7 to go
+    assert left("search", 5, 10) is None  # a phase of its own
+    now[0] = 5.0
+    assert left("fit", 1, 10) is None  # the phase began again
+    assert duration(None) == "unknown" and duration(75) == "1 min 15 s" and duration(3700) == "1 h 01 min"

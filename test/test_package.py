@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import os
 import subprocess
+import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from ament_index_python.packages import get_package_prefix, get_package_share_di
 
 from mosiv_ros.cli import default_parameters_yaml
 from mosiv_ros.config import STAGE_CONFIGS, describe
-from mosiv_ros.graph import Graph, NodeSpec
+from mosiv_ros.graph import Graph, NodeExited, NodeSpec, exit_description
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES = sorted(STAGE_CONFIGS)
@@ -67,6 +68,23 @@ def test_bad_parameter_value_stops_the_node_with_a_clear_error(tmp_path):
         node = graph.nodes["bag_replay_node"]
         assert node.process.wait(60) == 2
         node.wait_for_line("nope", timeout=5)
+
+
+@pytest.mark.slow
+def test_a_wait_on_the_graph_ends_as_soon_as_a_node_exits_and_says_how(tmp_path):
+    specs = [NodeSpec("prediction_node"), NodeSpec("bag_replay_node", {"bag": str(tmp_path / "nope")})]
+    with Graph(specs, sink=None) as graph:
+        replay = graph.nodes["bag_replay_node"]
+        replay.process.wait(60)
+        began = time.monotonic()
+        with pytest.raises(NodeExited, match=r"bag_replay_node exited with code 2 before printing a "
+                                             r"line containing 'replayed' \(waited 0 s\)"):
+            replay.wait_for_line("replayed", timeout=600)
+        with pytest.raises(NodeExited, match="bag_replay_node exited with code 2 while waiting for "
+                                             "prediction_node to print 'predicted'"):
+            graph.wait_for_line("prediction_node", "predicted", timeout=600)
+        assert time.monotonic() - began < 5  # not the timeout
+    assert exit_description(-6) == "was killed by SIGABRT" and exit_description(0) == "exited with code 0"
 
 
 def test_params_file_equals_the_config_defaults():

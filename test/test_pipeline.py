@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import subprocess
 import sys
 
@@ -85,13 +86,22 @@ def test_five_nodes_give_a_late_subscriber_latched_estimates_and_future_predicti
     assert stamps[0] >= last_fitted and stamps == sorted(stamps)
 
 
-def test_mosiv_graph_runs_the_node_graph_and_prints_where_the_report_is(drop_bag, fast_params, tmp_path):
+@pytest.mark.slow
+def test_mosiv_graph_runs_the_node_graph_from_an_empty_kernel_cache_and_prints_where_the_report_is(
+        drop_bag, fast_params, tmp_path):
+    # An empty Warp kernel cache, as on a fresh machine: identify_node's batched search then
+    # compiles the simulator while it runs one simulation per core (it crashed there once:
+    # threads built the same module at once).
     out = tmp_path / "graph"
+    env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path / "empty-kernel-cache")}
     result = subprocess.run(
         [sys.executable, "-m", "mosiv_ros", "graph", str(drop_bag), "--rate", "1", "--timeout", "400",
          "--params-file", str(fast_params), "--out", str(out)],
-        capture_output=True, text=True, timeout=600)
+        capture_output=True, text=True, timeout=600, env=env)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "[identify_node]" in result.stdout and "sim.runtime: kernels ready on" in result.stdout
+    assert (tmp_path / "empty-kernel-cache").is_dir()  # the nodes compiled into it
+    assert "Warp CUDA error" not in result.stdout + result.stderr  # a machine without a GPU is not an error
     assert "received 9 complete frame sets; identify_node fitted the first 6" in result.stdout
     assert f"report: {out / 'report.md'}" in result.stdout
     assert (out / "estimates.yaml").is_file() and (out / "report.json").is_file()

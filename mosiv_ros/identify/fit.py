@@ -248,6 +248,16 @@ class Identifier:
             math.inf, np.zeros(0), np.zeros(0), np.zeros(0))
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
 
+    def report(self, record: dict) -> None:
+        """Hand a progress record to the ``progress`` callback, if any.
+
+        Every record has ``phase`` ("search": samples scored; "fit": Adam iterations, with the
+        iteration's history entry; "uncertainty": rollouts of the curvature), ``done`` and
+        ``total`` (the phase's units, counted over the whole fit).
+        """
+        if self.progress is not None:
+            self.progress(record)
+
     # --- parameters <-> optimisation vector --------------------------------------------------
 
     def _entries(self, free: list[str]) -> list[Entry]:
@@ -573,13 +583,21 @@ class Identifier:
 
         if s.search_samples > 0:
             # the first round's best points are the starts: each narrows on its own basin
+            self.report({"phase": "search", "done": 0,
+                         "total": (1 + max(1, s.search_starts) * s.search_rounds) * s.search_samples})
             starts = round_(u, 0, max(1, s.search_starts))
+            rounds = 1 + len(starts) * s.search_rounds
+            self.report({"phase": "search", "done": s.search_samples,
+                         "total": rounds * s.search_samples})
             ends = []
             for k, (start, loss) in enumerate(starts):
                 for number in range(1, s.search_rounds + 1):
                     found = round_(start, number, 1)
                     if found:
                         start, loss = found[0]
+                    done = 1 + k * s.search_rounds + number
+                    self.report({"phase": "search", "done": done * s.search_samples,
+                                 "total": rounds * s.search_samples})
                 _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
                           self._values_of(start))
                 ends.append((loss, start))
@@ -650,8 +668,8 @@ class Identifier:
                           "loss": loss, "values": self._values_of(u),
                           "seconds": time.perf_counter() - tick, **self.timing}
                 history.append(record)
-                if self.progress is not None:
-                    self.progress(record)
+                self.report({"phase": "fit", "done": stage * s.iterations + iteration + 1,
+                             "total": len(stages) * s.iterations, **record})
                 self._save_checkpoint(signature, u, velocity, adam, history, stage,
                                       iteration + 1, failures)
         u, velocity, loss, per = self._final(u, velocity, bool(history))

@@ -36,6 +36,7 @@ from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import ProblemError, ProblemOptions, build_problem, object_name
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 
@@ -107,7 +108,12 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
     problem.sim_config.device = config.device
     identifier = Identifier(problem, fit_settings(config), progress)
     result = identifier.run()
-    std = coordinate_std(identifier, result) if config.uncertainty else None
+    std = None
+    if config.uncertainty:
+        rollouts = 1 + 2 * len(result.u)  # the end point and a step either way along each coordinate
+        identifier.report({"phase": "uncertainty", "done": 0, "total": rollouts})
+        std = coordinate_std(identifier, result)
+        identifier.report({"phase": "uncertainty", "done": rollouts, "total": rollouts})
     return Identification(estimates_of(identifier, result, std), identifier, result, window)
 
 
@@ -129,20 +135,22 @@ def failed_estimates(lifted: LiftedParticles, scene: Scene, reason: str,
                               choices)
 
 
-def phase_progress(progress: Callable[[str, int, int], None] | None, config: IdentifyConfig,
-                   phase: str) -> Callable[[dict], None]:
-    """A fit's per-iteration callback that calls ``progress(phase, done, total)``.
+UNITS = {"search": "sample", "fit": "iteration", "uncertainty": "rollout"}
+"""What a fit's progress records count, by phase (``Identifier.report``)."""
 
-    A candidate family's fit (a record with ``candidate``) counts under "family <candidate>", a
-    bar of its own; the rest under ``phase``. ``total`` is one fit's iterations.
+
+def phase_progress(progress: Progress | None, phase: str) -> Callable[[dict], None]:
+    """A fit's progress-record callback that calls ``progress(label, done, total, unit)``.
+
+    The Adam iterations count under ``phase``, the search and the uncertainty under
+    "``phase``: search" and "``phase``: uncertainty"; a candidate family's fit (a record with
+    ``candidate``) under "family <candidate>" in the same way, bars of their own.
     """
-    total = len(config.curriculum) * config.iterations
-    done: dict[str, int] = {}
 
     def record_progress(record: dict) -> None:
-        label = f"family {record['candidate']}" if "candidate" in record else phase
-        done[label] = done.get(label, 0) + 1
+        base = f"family {record['candidate']}" if "candidate" in record else phase
+        label = base if record["phase"] == "fit" else f"{base}: {record['phase']}"
         if progress:
-            progress(label, done[label], total)
+            progress(label, record["done"], record["total"], UNITS[record["phase"]])
 
     return record_progress

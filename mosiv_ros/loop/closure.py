@@ -50,7 +50,7 @@ import copy
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -75,6 +75,7 @@ from mosiv_ros.loop.library import LIBRARY, Candidate, Context
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
 from mosiv_ros.predict.twin import Prediction
+from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
@@ -182,7 +183,7 @@ class LoopError(ValueError):
 class LoopClosure:
     """The loop on one recording's stages 1-2 output (see the module docstring).
 
-    ``progress(phase, done, total)`` is called after every fit iteration. ``reobserver`` (stages
+    ``progress(phase, done, total, unit)`` follows every fit (``identify.run.phase_progress``). ``reobserver`` (stages
     1-2 of the recording, remade on demand) lets the library's sensor effects correct the
     observations; without it they are not tried.
 
@@ -194,7 +195,7 @@ class LoopClosure:
                  identify: IdentifyConfig, loop: LoopConfig | None = None,
                  views: Sequence[View] = (), gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
                  library: Sequence[Candidate] = LIBRARY,
-                 progress: Callable[[str, int, int], None] | None = None,
+                 progress: Progress | None = None,
                  reobserver: Reobserver | None = None) -> None:
         self.loop = loop or LoopConfig()
         frames = sorted((f for f in frames if f.stamp_ns >= lifted.stamp_ns), key=lambda f: f.stamp_ns)
@@ -267,7 +268,7 @@ class LoopClosure:
         observations = self.observations(effects, ctx)
         problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
         identification = fit_problem(problem, self.identify,
-                                     phase_progress(self.progress, self.identify, label),
+                                     phase_progress(self.progress, label),
                                      self.fitted_frames(observations))
         with_family_scores(identification.estimates, self.families)
         prediction = self.rollout(identification.identifier, observations)
@@ -438,7 +439,7 @@ class LoopClosure:
         return select_families(self.given.frames[: self.window], self.given.lifted, self.scene,
                                self.identify, fit_settings(self.identify),
                                problem_options(self.identify, self.views), self.views,
-                               self.gripper_poses, phase_progress(self.progress, self.identify, "family"))
+                               self.gripper_poses, phase_progress(self.progress, "family"))
 
     def try_candidate(self, ranked: Ranked, current: Model, ctx: Context) -> None:
         candidate = ranked.candidate

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -37,6 +36,7 @@ from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
 from mosiv_ros.loop.observations import Reobserver
 from mosiv_ros.pipeline import Prepared, RunConfig, prepare
+from mosiv_ros.progress import Progress
 from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import ground_truth_if_any
 
@@ -45,7 +45,7 @@ _LOG = logging.getLogger(__name__)
 
 def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None,
                loop: LoopConfig | None = None,
-               progress: Callable[[str, int, int], None] | None = None) -> dict:
+               progress: Progress | None = None) -> dict:
     """Run the loop closure on a recording and write its report into ``out``; return the JSON."""
     config = config or RunConfig()
     loop = loop or LoopConfig(holdout=config.holdout)

@@ -5,6 +5,7 @@ Not for algorithms: a node hands each message to the ROS-free core and publishes
 
 from __future__ import annotations
 
+import logging
 import signal
 import sys
 import typing
@@ -84,6 +85,29 @@ def print_help(node_name: str, config_type: type, summary: str) -> None:
         print(f"  {name} (default {default!r})\n      {help_text}")
 
 
+class CoreLogHandler(logging.Handler):
+    """Records of the core's Python loggers (``mosiv_ros.*``) on a node's ROS logger."""
+
+    def __init__(self, node_name: str) -> None:
+        super().__init__()
+        self.ros_logger = rclpy.logging.get_logger(node_name)
+        self.setFormatter(logging.Formatter("%(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = f"{record.name.removeprefix('mosiv_ros.')}: {self.format(record)}"
+            if record.levelno >= logging.ERROR:
+                self.ros_logger.error(text)
+            elif record.levelno >= logging.WARNING:
+                self.ros_logger.warning(text)
+            elif record.levelno >= logging.INFO:
+                self.ros_logger.info(text)
+            else:
+                self.ros_logger.debug(text)
+        except Exception:  # a log line must never stop the node
+            self.handleError(record)
+
+
 def main_for(
     node_name: str,
     config_type: type,
@@ -103,6 +127,11 @@ def main_for(
     # Python handler leaves the stop to rclpy alone, so the node always exits 0.
     signal.signal(signal.SIGINT, lambda _signum, _frame: None)
     rclpy.init(args=argv)
+    core = logging.getLogger("mosiv_ros")  # the core's log lines go to the node's log
+    handler = CoreLogHandler(node_name)
+    core.setLevel(int(handler.ros_logger.get_effective_level()))  # rcutils uses Python's levels
+    core.propagate = False
+    core.addHandler(handler)
     node = None
     try:
         # The executor exists before "ready" is logged: a Ctrl-C right after that line must find

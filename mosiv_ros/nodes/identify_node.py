@@ -29,7 +29,7 @@ from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.family import candidate_families
-from mosiv_ros.identify.run import identify_objects
+from mosiv_ros.identify.run import UNITS, identify_objects
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -44,8 +44,10 @@ from mosiv_ros.nodes.common import (
     main_for,
 )
 from mosiv_ros.nodes.outputs import diagnostics_msg
+from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
+from mosiv_ros.sim.runtime import resolve_device
 
 NAME = "identify_node"
 SUMMARY = "fit per-object material parameters with the differentiable MPM simulator"
@@ -58,6 +60,7 @@ class IdentifyNode(Node):
         super().__init__(NAME)
         self.config: IdentifyConfig = declare_config(self, IdentifyConfig)
         candidate_families(self.config.families)  # a bad list stops the node now, not after the stream
+        resolve_device(self.config.device)  # a device that is not there stops the node now
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         self.estimates_pub = self.create_publisher(
             DiagnosticArray, "/mosiv/material_estimates", LATCHED_QOS)
@@ -110,20 +113,27 @@ class IdentifyNode(Node):
 
     def _fit(self, frames: list[ObservedFrame]) -> None:
         started = time.monotonic()
+        time_left = TimeLeft()
 
         def progress(record: dict) -> None:
-            pairs = [("stage", str(record["stage"])), ("window", str(record["window"])),
-                     ("iteration", str(record["iteration"])), ("loss", f"{record['loss']:.6g}"),
-                     ("elapsed_s", f"{time.monotonic() - started:.1f}")]
+            phase, done, total = record["phase"], record["done"], record["total"]
             candidate = record.get("candidate")  # a candidate family's fit (identify.family)
+            label = f"family candidate {candidate}: {phase}" if candidate else phase
+            left = time_left(label, done, total)
+            pairs = [("phase", phase), ("done", str(done)), ("total", str(total)),
+                     ("time_left_s", "unknown" if left is None else f"{left:.0f}"),
+                     ("elapsed_s", f"{time.monotonic() - started:.1f}")]
+            text = f"{label}: {done}/{total} {UNITS[phase]}s"
+            if phase == "fit":
+                pairs += [("stage", str(record["stage"])), ("window", str(record["window"])),
+                          ("iteration", str(record["iteration"])), ("loss", f"{record['loss']:.6g}")]
+                text += f" (stage {record['stage']}, window {record['window']}): loss {record['loss']:.4g}"
             if candidate:
                 pairs.append(("candidate", candidate))
-            message = f"fitting family candidate {candidate}" if candidate else "fitting"
             self.progress_pub.publish(diagnostics_msg(
-                [("mosiv/identify", "", "OK", message, pairs)], self.get_clock().now().nanoseconds))
-            prefix = f"family candidate {candidate}: " if candidate else ""
-            self.get_logger().info(f"{prefix}stage {record['stage']} (window {record['window']}) "
-                                   f"iteration {record['iteration']}: loss {record['loss']:.4g}")
+                [("mosiv/identify", "", "OK", f"identifying: {label}", pairs)],
+                self.get_clock().now().nanoseconds))
+            self.get_logger().info(f"{text}; time left in this phase {duration(left)}")
 
         identification = identify_objects(frames, self.particles, self.scene, self.config,
                                           progress=progress)
@@ -143,8 +153,12 @@ class IdentifyNode(Node):
     def _close_loop(self, frames: list[ObservedFrame]) -> None:
         started = time.monotonic()
 
-        def progress(phase: str, done: int, total: int) -> None:
-            self.get_logger().info(f"loop closure: {phase} {done}/{total}")
+        time_left = TimeLeft()
+
+        def progress(phase: str, done: int, total: int, unit: str) -> None:
+            left = duration(time_left(phase, done, total))
+            self.get_logger().info(f"loop closure: {phase} {done}/{total} {unit}s; time left in "
+                                   f"this phase {left}")
 
         try:
             result = LoopClosure(frames, self.particles, self.scene, self.config,
@@ -152,10 +166,9 @@ class IdentifyNode(Node):
         except (LoopError, SimulationError, ValueError) as error:
             self.get_logger().error(f"loop closure failed: {error}")
             return
-        write_loop_report(self.config.close_loop_dir, result)
-        added = ", ".join(result.after.names) or "none"
-        self.get_logger().info(f"loop closure: {result.verdict}; effects added: {added}; report in "
-                               f"{self.config.close_loop_dir} ({time.monotonic() - started:.1f} s)")
+        write_loop_report(self.config.close_loop_dir, result)  # the core logged the verdict
+        self.get_logger().info(f"loop closure report written to {self.config.close_loop_dir} "
+                               f"({time.monotonic() - started:.1f} s)")
 
 
 def main(args: list[str] | None = None) -> int:

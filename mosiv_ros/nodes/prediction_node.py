@@ -43,6 +43,7 @@ from mosiv_ros.nodes.outputs import markers_msg, path_msg, statuses_of
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.predict.twin import Twin
 from mosiv_ros.sim.errors import SimulationError
+from mosiv_ros.sim.runtime import resolve_device
 
 NAME = "prediction_node"
 SUMMARY = "roll the identified digital twin forward and publish predicted object dynamics"
@@ -56,6 +57,7 @@ class PredictionNode(Node):
     def __init__(self) -> None:
         super().__init__(NAME)
         self.config: PredictionConfig = declare_config(self, PredictionConfig)
+        resolve_device(self.config.device)  # a device that is not there stops the node now
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         self.request = WhatIf.parse(self.config.initial_velocities, self.config.swapped_params)
         self.types = rclpy_types()

@@ -20,6 +20,7 @@ from mosiv_ros.sim.effects import (
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS
 from mosiv_ros.sim.params import ParamSpec
+from mosiv_ros.sim.runtime import resolve_device
 from mosiv_ros.sim.simulator import (
     Gradients,
     ObjectModel,
@@ -28,7 +29,6 @@ from mosiv_ros.sim.simulator import (
     SimState,
     Simulator,
     domain_around,
-    resolve_device,
 )
 
 __all__ = [

@@ -40,18 +40,9 @@ from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
 from mosiv_ros.sim.params import Parameters
+from mosiv_ros.sim.runtime import load_modules, resolve_device
 
 _LOG = logging.getLogger(__name__)
-
-
-def resolve_device(device: str) -> str:
-    """'auto' -> 'cuda:0' when a CUDA device is available, else 'cpu'; others unchanged."""
-    wp.init()
-    if device == "auto":
-        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
-    if device.startswith("cuda") and wp.get_cuda_device_count() == 0:
-        raise ParameterError(f"device {device!r} requested but no CUDA device is available")
-    return device
 
 
 @dataclass
@@ -252,6 +243,9 @@ class Simulator:
         self.n_batch = int(n_batch)
         self.device = resolve_device(config.device)
         self._check_scene(particles)
+        # every kernel this simulator may launch, built before any launch (sim.runtime says why)
+        load_modules(self.device, [kernels.__name__, Parameters.__module__, Effect.__module__,
+                                   __name__, *(type(e).__module__ for e in config.effects)])
         self.n_particles = len(particles.x)
         self.n_objects = len(self.objects)
         self.dx = float(config.dx)

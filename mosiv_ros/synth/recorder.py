@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +28,7 @@ from mosiv_ros.io.bag import write_recording
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.recording import Camera, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
+from mosiv_ros.progress import Progress
 from mosiv_ros.sim import (
     BUILTIN_EFFECTS,
     MATERIAL_PARAMS,
@@ -51,8 +51,6 @@ _LOG = logging.getLogger(__name__)
 SPLAT_RADIUS = 0.8
 """Radius of a rendered particle ball, in particle spacings (> 1/sqrt(2): no see-through gaps)."""
 
-Progress = Callable[[str, int, int], None]
-"""progress(phase, done, total), phase 'simulate' (frames) or 'render' (camera frames)."""
 
 
 def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = True,
@@ -118,7 +116,7 @@ def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) ->
         simulator, config, substeps, dt = _simulator(layout, points, margin)
         _LOG.info("simulating %d frames x %d substeps (dt %.3g s) of %d particles on %s",
                   n_frames, substeps, dt, len(layout.x), simulator.device)
-        report = None if progress is None else (lambda frame: progress("simulate", frame, n_frames))
+        report = None if progress is None else (lambda frame: progress("simulate", frame, n_frames, "frame"))
         trajectory = simulator.rollout(n_frames, progress=report)
         inner = (WALL_CELLS + 1) * sim.dx
         x = trajectory[:, 0]
@@ -224,7 +222,7 @@ def render_cameras(layout: Layout, positions: np.ndarray, offsets: dict[str, flo
             frames[name].append(Frame(spec.stamp_ns(k), *_add_noise(layout, rgb, mask, depth, rng)))
             done += 1
             if progress is not None:
-                progress("render", done, total)
+                progress("render", done, total, "image")
     return {name: Camera(name, cams.intrinsics, pose, frames[name])
             for name, pose in zip(cams.names, cams.poses, strict=True)}
 

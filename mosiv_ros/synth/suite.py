@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -27,8 +26,9 @@ import numpy as np
 import yaml
 
 from mosiv_ros.io.scene import FAMILIES
+from mosiv_ros.progress import Progress
 from mosiv_ros.synth.layout import lay_out
-from mosiv_ros.synth.recorder import Progress, record
+from mosiv_ros.synth.recorder import record
 from mosiv_ros.synth.scene_file import read_scene_file
 
 _LOG = logging.getLogger(__name__)
@@ -146,11 +146,10 @@ def suite_scenes(size_name: str, seed: int = 0) -> list[tuple[dict[str, Any], di
 
 
 def make_suite(out: str | Path, size_name: str, *, seed: int = 0, record_bags: bool = True,
-               progress: Callable[[str, int, int], None] | None = None,
-               record_progress: Progress | None = None) -> Path:
+               progress: Progress | None = None, record_progress: Progress | None = None) -> Path:
     """Write the suite's scene files (and record them) under the new directory ``out``.
 
-    ``progress('scenes', done, total)`` after each scene; ``record_progress`` goes to ``record``.
+    ``progress('scenes', done, total, 'scene')`` after each scene; ``record_progress`` goes to ``record``.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=False)
@@ -169,7 +168,7 @@ def make_suite(out: str | Path, size_name: str, *, seed: int = 0, record_bags: b
             lay_out(spec)  # the checks a recording would make
         index.append(entry)
         if progress is not None:
-            progress("scenes", done, len(scenes))
+            progress("scenes", done, len(scenes), "scene")
     (out / "suite.yaml").write_text(yaml.safe_dump({"size": size_name, "seed": seed, "scenes": index},
                                                    sort_keys=False), encoding="utf-8")
     _LOG.info("wrote the %s suite (%d scenes) to %s", size_name, len(index), out)
