@@ -58,8 +58,23 @@ def cmd_info(args: argparse.Namespace) -> int:
         depth = "with depth" if any(f.depth is not None for f in camera.frames) else "no depth"
         print(f"  camera {name}: {k.width}x{k.height}, fx {k.K[0, 0]:.1f}, "
               f"{len(camera.frames)} frames, {depth}")
-    for obj in recording.scene.objects:
-        print(f"  object {obj.id}: {obj.name} ({obj.family or 'family not declared'})")
+    scene = recording.scene
+    for obj in scene.objects:
+        known = ", ".join(f"{k}={v:g}" for k, v in obj.params.items()) or "none"
+        print(f"  object {obj.id}: {obj.name} ({obj.family or 'family not declared'}); "
+              f"declared parameters: {known}")
+    if scene.ground is None:
+        print("  ground: not declared (no floor in the simulation)")
+    else:
+        ground = scene.ground
+        friction = ground.get("friction")
+        print(f"  ground: height {ground.get('height', 0.0):g} m, normal "
+              f"{tuple(ground.get('normal', (0.0, 0.0, 1.0)))}, friction "
+              f"{'fitted (not declared)' if friction is None else format(friction, 'g')}")
+    for effect in scene.effects:
+        print(f"  declared effect {effect.name}: {effect.params}")
+    if scene.gripper is not None:
+        print(f"  gripper: {scene.gripper}")
     print(f"  gripper poses: {len(recording.gripper_poses)}")
     return 0
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_ros.evaluate.twin import PER_DENSITY
+from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE
 from mosiv_ros.identify.family import HOLDOUT
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -57,23 +57,21 @@ def _markdown(report: dict, plots: list[str]) -> str:
              "| object | family | parameter | estimate | std | truth | error | status |",
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     errors = report.get("parameter_errors", {})
-    for obj in est["objects"]:
-        for name, value in obj["params"].items():
-            std = obj["std"].get(name)
-            err = errors.get(obj["name"], {}).get(name, {})
+    rows = [(obj["name"], obj["family"], obj["params"], obj["std"], f"{obj['level']} {obj['message']}")
+            for obj in est["objects"]]
+    rows.append((SCENE, "", est["scene"], est["scene_std"], f"{est['scene_level']} {est['scene_message']}"))
+    for owner, family, params, stds, status in rows:
+        for name, value in params.items():
+            std = stds.get(name)
+            err = errors.get(owner, {}).get(name, {})
             measure = next((f"{k} {v:+.3g}" for k, v in err.items()
                             if k in ("log10_ratio", "abs", "rel") and v is not None), "")
             if PER_DENSITY in err and err[PER_DENSITY] != err["log10_ratio"]:
                 measure += f" (per density {err[PER_DENSITY]:+.3g})"
             std_text = "" if std is None else f"{std:.3g}"
             truth_text = f"{err['truth']:.4g}" if err else ""
-            lines.append(f"| {obj['name']} | {obj['family']} | {name} | {value:.4g} | "
-                         f"{std_text} | {truth_text} | {measure} | {obj['level']} {obj['message']} |")
-    for name, value in est["scene"].items():
-        std = est["scene_std"].get(name)
-        std_text = "" if std is None else f"{std:.3g}"
-        lines.append(f"| scene | | {name} | {value:.4g} | {std_text} | | | "
-                     f"{est['scene_level']} {est['scene_message']} |")
+            lines.append(f"| {owner} | {family} | {name} | {value:.4g} | {std_text} | {truth_text} | "
+                         f"{measure} | {status} |")
     lines += _families(est["objects"], (report.get("fit") or {}).get("families", []))
     lines += ["", "## Scores", "",
               "| frames | CD (mm) | EMD (mm) | CD vs truth (mm) | IoU | PSNR (dB) | SSIM |",

@@ -18,6 +18,7 @@ import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from scipy.spatial.transform import Rotation
 
+from mosiv_ros.cli import main
 from mosiv_ros.io.bag import (
     STORAGES,
     iter_raw_messages,
@@ -484,6 +485,25 @@ def test_invalid_scene_in_custom_data_raises_bag_error(small_bag, tmp_path):
     bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: bad})
     with pytest.raises(BagError, match=r"scene declaration .*objects\[0\].family"):
         read_recording(bag)
+
+
+def test_mosiv_info_shows_cameras_objects_declared_parameters_ground_and_effects(
+        small_bag, small_recording, capsys, tmp_path):
+    names = [o.name for o in small_recording.scene.objects]
+    declared = (f"objects: [{{id: 1, name: {names[0]}, family: elastic, params: {{density: 1200}}}}, "
+                f"{{id: 2, name: {names[1]}}}, {{id: 3, name: {names[2]}, family: sand}}]\n"
+                "ground: {height: 0.01, friction: 0.4}\n"
+                f"effects: [{{name: drag, params: {{coefficient: {{{names[0]}: 1.5}}}}}}]\n")
+    bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: declared})
+    assert main(["info", str(bag)]) == 0
+    out = capsys.readouterr().out
+    assert "camera cam0: 24x18" in out and "4 frames, with depth" in out
+    assert f"object 1: {names[0]} (elastic); declared parameters: density=1200" in out
+    assert f"object 2: {names[1]} (family not declared); declared parameters: none" in out
+    assert "ground: height 0.01 m, normal (0.0, 0.0, 1.0), friction 0.4" in out
+    assert f"declared effect drag: {{'coefficient': {{'{names[0]}': 1.5}}}}" in out
+    assert main(["info", str(small_bag)]) == 0
+    assert "ground: not declared (no floor in the simulation)" in capsys.readouterr().out
 
 
 def test_extrinsics_follow_a_chain_of_static_transforms_in_either_direction(

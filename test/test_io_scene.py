@@ -85,6 +85,11 @@ def test_unknown_family_names_the_field_and_the_choices():
     )
 
 
+def test_an_object_named_scene_is_refused_its_name_is_the_scene_wide_status():
+    with pytest.raises(SceneError, match=r"objects\[0\]\.name: 'scene' is reserved"):
+        parse_scene("objects:\n  - {id: 1, name: scene, family: elastic}\n")
+
+
 @pytest.mark.parametrize(
     ("text", "field", "problem"),
     [

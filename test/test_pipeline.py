@@ -16,7 +16,7 @@ from sensor_msgs.msg import PointCloud2
 from test_nodes_process import LATCHED, Listener
 
 from mosiv_ros.config import IdentifyConfig
-from mosiv_ros.evaluate.twin import PER_DENSITY, parameter_errors
+from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE, parameter_errors
 from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
 from mosiv_ros.identify.run import identify_objects
@@ -138,6 +138,25 @@ def test_parameter_errors_also_compare_scale_parameters_per_unit_density():
               "timing": {"fit_s": 1.0}}
     row = next(line for line in _markdown(report, []).splitlines() if line.startswith("| ball | elastic | E |"))
     assert "log10_ratio +0.398 (per density +0)" in row
+
+
+def test_parameter_errors_score_the_ground_and_the_effects_the_fit_found():
+    estimates = Estimates([ObjectEstimate(1, "ball", "elastic", {"E": 4e4, "drag.coefficient": 1.2})],
+                          scene={"ground.friction": 0.6, "wind.a[1]": 2.5, "ground.normal[0]": 0.1})
+    truth = {"objects": [{"name": "ball", "params": {"E": 4e4}}],
+             "ground": {"height": 0.0, "normal": [0.0, 0.0, 1.0], "friction": 0.5},
+             "effects": [{"type": "drag", "declared": False, "params": {"coefficient": {"ball": 1.5}}},
+                         {"type": "wind", "declared": False, "params": {"a": [0.0, 3.0, 0.0]}}]}
+    errors = parameter_errors(estimates, truth)
+    assert errors["ball"]["drag.coefficient"]["rel"] == pytest.approx(-0.2)
+    assert errors[SCENE]["ground.friction"] == {"estimate": 0.6, "truth": 0.5, "rel": pytest.approx(0.2)}
+    assert errors[SCENE]["wind.a[1]"]["abs"] == pytest.approx(-0.5)
+    assert errors[SCENE]["ground.normal[0]"]["abs"] == pytest.approx(0.1)  # a truth of 0: absolute
+    report = {"bag": "b", "frames": 3, "frame_dt": 0.1, "fitted_frames": 2, "particles": 10,
+              "estimates": estimates.to_dict(), "parameter_errors": errors, "metrics": {},
+              "timing": {"fit_s": 1.0}}
+    row = next(line for line in _markdown(report, []).splitlines() if "| ground.friction |" in line)
+    assert row.startswith("| scene |  | ground.friction | 0.6 |") and "| 0.5 | rel +0.2 |" in row
 
 
 def test_a_fit_that_cannot_run_is_reported_as_error_estimates_not_raised(drop_bag):

@@ -10,7 +10,8 @@ For every frame of the recording (the twin's frames are the observation frames),
 
 Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
 compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
-bulk modulus, viscosity), absolute difference for nu, relative difference otherwise. Geometry
+bulk modulus, viscosity), absolute difference for nu, a vector's components and a true value of
+zero, relative difference otherwise. Geometry
 cannot tell mass, so a fit at an assumed density that is not the true one can only get a scale
 parameter right per unit density (a body's accelerations follow div(sigma) / rho): scale
 parameters also carry the log10 ratio of parameter / density against the truth's.
@@ -35,6 +36,8 @@ from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
 
 LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
+SCENE = "scene"
+"""The key of the scene's parameters (ground, effects) among ``parameter_errors``' objects."""
 PER_DENSITY = "log10_ratio_per_density"
 """Error key of a scale parameter divided by the object's density, against the truth's."""
 EMD_EVERY = 3
@@ -111,26 +114,66 @@ def summarise(scores: Sequence[FrameScores]) -> dict:
 
 
 def parameter_errors(estimates: Estimates, truth: dict) -> dict[str, dict[str, dict]]:
-    """Per object name, per parameter: estimate, truth and the error measure of its kind."""
-    true_objects = {o["name"]: o for o in truth.get("objects", [])}
+    """Per object name, per parameter: estimate, truth and the error measure of its kind.
+
+    Every fitted value the truth holds is scored: each object's material parameters and its
+    per-object effect parameters (``drag.coefficient``), and under ``SCENE`` the ground's and
+    the effects' scene parameters (``ground.friction``, ``wind.a[1]``), named as the estimates
+    name them.
+    """
+    true_objects, true_scene = truth_values(truth)
     errors: dict[str, dict[str, dict]] = {}
     for obj in estimates.objects:
-        actual = true_objects.get(obj.name, {}).get("params", {})
+        actual = true_objects.get(obj.name, {})
         for name, value in obj.params.items():
             if name not in actual:
                 continue
-            t = float(actual[name])
-            if name in LOG_SCALE:
-                kind, error = "log10_ratio", _log10_ratio(value, t)
-            elif name == "nu":
-                kind, error = "abs", value - t
-            else:
-                kind, error = "rel", (value - t) / t if t else math.inf
-            entry = {"estimate": value, "truth": t, kind: error}
+            entry = _error(name, value, actual[name])
             if name in LOG_SCALE and "density" in obj.params and "density" in actual:
-                entry[PER_DENSITY] = error - _log10_ratio(obj.params["density"], float(actual["density"]))
+                entry[PER_DENSITY] = entry["log10_ratio"] - _log10_ratio(obj.params["density"],
+                                                                         actual["density"])
             errors.setdefault(obj.name, {})[name] = entry
+    scene = {name: _error(name, value, true_scene[name])
+             for name, value in estimates.scene.items() if name in true_scene}
+    if scene:
+        errors[SCENE] = scene
     return errors
+
+
+def truth_values(truth: dict) -> tuple[dict[str, dict[str, float]], dict[str, float]]:
+    """A ground truth's values as the estimates name them: by object name, and of the scene."""
+    objects = {o["name"]: {k: float(v) for k, v in o.get("params", {}).items()}
+               for o in truth.get("objects", [])}
+    scene: dict[str, float] = {}
+    ground = truth.get("ground") or {}
+    for key in ("height", "friction"):
+        if ground.get(key) is not None:
+            scene[f"ground.{key}"] = float(ground[key])
+    for i, component in enumerate(ground.get("normal") or []):
+        scene[f"ground.normal[{i}]"] = float(component)
+    for effect in truth.get("effects", []):
+        for key, value in (effect.get("params") or {}).items():
+            name = f"{effect.get('type')}.{key}"
+            if isinstance(value, dict):  # a value per object
+                for object_name, v in value.items():
+                    objects.setdefault(object_name, {})[name] = float(v)
+            elif isinstance(value, list):
+                scene.update({f"{name}[{i}]": float(v) for i, v in enumerate(value)})
+            else:
+                scene[name] = float(value)
+    return objects, scene
+
+
+def _error(name: str, value: float, truth: float) -> dict:
+    """Estimate, truth and the error of ``name``'s kind (see the module docstring)."""
+    base = name.rsplit(".", 1)[-1]
+    if base in LOG_SCALE:
+        kind, error = "log10_ratio", _log10_ratio(value, truth)
+    elif base == "nu" or "[" in base or truth == 0:  # a vector's components; a truth of zero
+        kind, error = "abs", value - truth
+    else:
+        kind, error = "rel", (value - truth) / truth
+    return {"estimate": value, "truth": truth, kind: error}
 
 
 def _log10_ratio(value: float, truth: float) -> float:

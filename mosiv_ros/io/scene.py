@@ -97,6 +97,9 @@ def _plain(value: float) -> float | int:
     return int(value) if isinstance(value, int) else float(value)
 
 
+RESERVED_NAME = "scene"
+"""No object takes this name: estimates and reports use it for the ground's and effects' values."""
+
 @dataclass
 class SceneObject:
     """One declared object: its mask id, unique name, material family and known parameters.
@@ -118,6 +121,9 @@ class SceneObject:
             raise SceneError(f"{prefix}id", f"{self.id} is outside 1..{MAX_OBJECT_ID}")
         if not isinstance(self.name, str) or not self.name.strip():
             raise SceneError(f"{prefix}name", f"expected a non-empty string, got {self.name!r}")
+        if self.name == RESERVED_NAME:
+            raise SceneError(f"{prefix}name", f"{RESERVED_NAME!r} is reserved: it names the scene's "
+                             "own status on /mosiv/material_estimates (mosiv/scene)")
         if self.family is not None and self.family not in FAMILIES:
             raise SceneError(
                 f"{prefix}family",
