@@ -7,8 +7,11 @@ import random
 
 import pytest
 
-# Keep this run's DDS traffic on this host and away from other runs (CI, a developer's shell).
-os.environ.setdefault("ROS_DOMAIN_ID", str(random.Random().randint(10, 99)))
+# Keep this run's DDS traffic on this host and away from other runs (CI, a developer's shell),
+# and each pytest-xdist worker's away from the others' (workers inherit the first process's
+# environment, so each adds its number to one base drawn once).
+_DOMAIN_BASE = int(os.environ.setdefault("MOSIV_TEST_DOMAIN_BASE", str(random.Random().randint(10, 90))))
+os.environ["ROS_DOMAIN_ID"] = str(_DOMAIN_BASE + int(os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]))
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
 

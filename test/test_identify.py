@@ -179,6 +179,7 @@ def _jelly_problem(true_params, guess, frames=15, observed_points=None, **settin
     return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **settings)
 
 
+@pytest.mark.slow
 def test_fit_recovers_modulus_and_poisson_ratio_of_a_dropped_soft_cube():
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2},
                                        observed_points=150)
@@ -189,6 +190,7 @@ def test_fit_recovers_modulus_and_poisson_ratio_of_a_dropped_soft_cube():
     assert result.velocity[0, :3] == pytest.approx([0.4, 0.0, -0.5], abs=0.03)
 
 
+@pytest.mark.slow
 def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(caplog):
     problem, _ = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6)
     velocity = np.zeros((1, 6))
@@ -212,6 +214,7 @@ def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(
     assert three_loss <= one_loss * (1 + 1e-9)
 
 
+@pytest.mark.slow
 def test_fit_recovers_the_ground_friction_of_a_cube_sliding_to_a_stop():
     problem, settings = _cube_problem({"E": 5e4}, {"E": 5e4}, ["ground.friction"], frames=12,
                                       observed_points=150, start=(0.15, 0.135),
@@ -220,6 +223,7 @@ def test_fit_recovers_the_ground_friction_of_a_cube_sliding_to_a_stop():
     assert result.values["ground.friction"] == pytest.approx(0.3, rel=0.1)
 
 
+@pytest.mark.slow
 def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step():
     # a learning rate large enough for Adam to overshoot: measured losses (x1e-6) 337, 94.5,
     # 42.9, 54.4, 84.1, 98.6
@@ -235,6 +239,7 @@ def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step()
     assert result.values["E"][0] == pytest.approx(result.history[best - 1]["values"]["cube.E"], rel=1e-6)
 
 
+@pytest.mark.slow
 def test_a_modulus_stops_at_max_modulus_and_its_estimate_says_it_is_only_a_lower_bound():
     # the true cube (20 kPa) is stiffer than the cap: Adam drives E up to 10 kPa and no further
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3}, ["E"], frames=8,
@@ -255,6 +260,7 @@ class _Stop(Exception):
     pass
 
 
+@pytest.mark.slow
 def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninterrupted_one_does(
         tmp_path):
     args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
@@ -280,6 +286,7 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
     assert len(resumed.history) == len(reference.history)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
     problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
                                        iterations=2, checkpoint_dir=str(tmp_path))
@@ -290,6 +297,7 @@ def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
     assert len(result.history) == 2 * 2  # two stages of two iterations: started afresh
 
 
+@pytest.mark.slow
 def test_a_checkpoint_of_other_fit_settings_is_ignored(tmp_path):
     # the scene-level ablation with the same checkpoint_dir must not resume the per-object fit
     problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
@@ -359,6 +367,7 @@ def test_boundary_offset_gradient_matches_finite_differences():
     assert analytic == pytest.approx(numeric, rel=0.1)
 
 
+@pytest.mark.slow
 def test_fit_recovers_a_density_ratio_from_a_head_on_collision():
     # A ball of 400 kg/m^3 hits one of 1200 at rest: how fast each leaves the collision tells the
     # mass ratio (geometry alone cannot). With a's density known, b's is fitted from 1000.
@@ -495,6 +504,7 @@ def test_the_silhouette_loss_renders_the_particles_inside_the_surface_not_the_bo
     assert banded == pytest.approx(plain, rel=0.02)
 
 
+@pytest.mark.slow
 def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the_data_cannot_pin():
     # the cube meets no other object: its contact friction cannot change the loss at all
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 2e4, "nu": 0.3},

@@ -91,6 +91,7 @@ def test_the_bag_leaves_the_family_out_and_lifting_marks_it_unknown(heap):
     assert np.all(heap.lifted.material == UNKNOWN_MATERIAL) and heap.lifted.warnings == []
 
 
+@pytest.mark.slow
 def test_mosiv_run_chooses_the_undeclared_family_by_held_out_error_and_reports_the_scores(
         heap_bag, tmp_path):
     out = tmp_path / "run"
@@ -144,6 +145,7 @@ class _Stop(Exception):
     pass
 
 
+@pytest.mark.slow
 def test_an_interrupted_selection_resumes_without_refitting_finished_candidates(heap, tmp_path):
     config = replace(FIT, iterations=3, search_samples=0, checkpoint_dir=str(tmp_path))
     frames = heap.frames[:10]
@@ -172,6 +174,7 @@ def test_an_interrupted_selection_resumes_without_refitting_finished_candidates(
     assert yaml.safe_load((tmp_path / SCORES_FILE).read_text())["trials"].keys() == {"1-elastic", "1-sand"}
 
 
+@pytest.mark.slow
 def test_a_final_fit_that_fails_after_the_selection_reports_the_chosen_family(heap):
     config = replace(FIT, iterations=1, search_samples=0)
 
@@ -188,6 +191,7 @@ def test_a_final_fit_that_fails_after_the_selection_reports_the_chosen_family(he
     assert obj.family_scores == chosen.scores and list(obj.family_scores) == ["elastic", "sand"]
 
 
+@pytest.mark.slow
 def test_the_loop_closure_fits_every_model_with_the_family_it_chose(heap):
     closure = LoopClosure(heap.frames[:16], heap.lifted, heap.recording.scene,
                           replace(FIT, iterations=2), LoopConfig(holdout=0.3))

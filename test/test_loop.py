@@ -73,6 +73,7 @@ def drag(tmp_path_factory):
     return _close(tmp_path_factory, "drag", _scene([DRAG]))
 
 
+@pytest.mark.slow
 def test_undeclared_air_drag_is_named_fitted_and_cuts_the_held_out_error(drag):
     assert drag.verdict == EXPLAINED and drag.after.names == ["drag"]
     # in 0.3 s of flight quadratic and linear drag explain the residual alike (measured 0.81 and
@@ -85,6 +86,7 @@ def test_undeclared_air_drag_is_named_fitted_and_cuts_the_held_out_error(drag):
     assert _factor(drag) >= 2.0
 
 
+@pytest.mark.slow
 def test_with_the_undeclared_drag_accepted_the_stiffness_moves_closer_to_the_truth(tmp_path_factory):
     # E and nu undeclared (truth 30 kPa, 0.3): a softer cube thrown down at the floor, so that
     # the bounce shows its stiffness; without the drag the fit bends E to explain the slowing
@@ -103,6 +105,7 @@ def test_with_the_undeclared_drag_accepted_the_stiffness_moves_closer_to_the_tru
     assert error["after"] < 0.5 * error["before"] and error["after"] < 0.5
 
 
+@pytest.mark.slow
 def test_undeclared_wind_is_named_fitted_and_cuts_the_held_out_error(tmp_path_factory):
     wind = _close(tmp_path_factory, "wind", _scene([{"type": "wind", "a": [0.0, 3.0, 0.0], "declared": False}]))
     assert wind.verdict == EXPLAINED and wind.after.names == ["wind"]
@@ -114,6 +117,7 @@ def test_undeclared_wind_is_named_fitted_and_cuts_the_held_out_error(tmp_path_fa
     assert _factor(wind) >= 2.0
 
 
+@pytest.mark.slow
 def test_undeclared_tilted_floor_is_named_fitted_and_cuts_the_held_out_error(tmp_path_factory):
     scene = _scene([{"type": "floor_tilt", "normal": [0.25, 0.0, 1.0], "declared": False},
                     {"type": "floor_friction", "friction": 0.1, "declared": True}],
@@ -127,6 +131,7 @@ def test_undeclared_tilted_floor_is_named_fitted_and_cuts_the_held_out_error(tmp
     assert _factor(tilt) >= 2.0
 
 
+@pytest.mark.slow
 def test_an_undeclared_camera_time_offset_is_named_fitted_and_cuts_the_held_out_error(tmp_path_factory):
     # three cameras (with two, an offset of one is an offset of the other); cam1 shows the
     # scene one frame (33.3 ms) ahead of its stamps
@@ -143,11 +148,13 @@ def test_an_undeclared_camera_time_offset_is_named_fitted_and_cuts_the_held_out_
     assert _factor(result) >= 2.0  # measured 11.4 -> 4.65 mm (2.4x)
 
 
+@pytest.mark.slow
 def test_without_an_undeclared_effect_nothing_is_accepted(tmp_path_factory):
     result = _close(tmp_path_factory, "plain", _scene([]))
     assert result.verdict == NOTHING and result.after.names == []
 
 
+@pytest.mark.slow
 def test_an_effect_outside_the_library_is_reported_as_unexplained(tmp_path_factory):
     field = {"type": "periodic_field", "a": [0.0, 15.0, 0.0], "wavelength": 0.12, "declared": False}
     result = _close(tmp_path_factory, "field", _scene([field]))
@@ -183,6 +190,7 @@ def _params_file(tmp_path, fast_params):
     return path
 
 
+@pytest.mark.slow
 def test_mosiv_close_loop_writes_the_report(tmp_path, fast_params, drag_bag):
     # the command end to end on the drag recording, with the test's fit settings
     out = tmp_path / "report"
@@ -202,6 +210,7 @@ def test_mosiv_close_loop_writes_the_report(tmp_path, fast_params, drag_bag):
     assert "drag" in (out / "closed_scene.yaml").read_text()
 
 
+@pytest.mark.slow
 def test_identify_node_with_close_loop_closes_the_loop_on_its_topics(tmp_path, fast_params, drag_bag):
     # the nodes as processes on the replayed drag recording: identify_node fits, then runs the
     # loop on the frames it received (no silhouettes, no recording: sensor effects not tried)

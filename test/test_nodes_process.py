@@ -69,6 +69,7 @@ def listener():
     node.close()
 
 
+@pytest.mark.slow
 def test_replay_delivers_every_recorded_image_with_its_recorded_stamp(shapes_bag, listener):
     recording = read_recording(shapes_bag)
     expected = {
@@ -92,6 +93,7 @@ def test_replay_delivers_every_recorded_image_with_its_recorded_stamp(shapes_bag
         camera.intrinsics.height, camera.intrinsics.width, "rgb8")
 
 
+@pytest.mark.slow
 def test_latched_tf_static_reaches_a_subscriber_that_starts_after_it_was_published(shapes_bag):
     recording = read_recording(shapes_bag)
     params = {"bag": str(shapes_bag), "rate": 0.0, "linger": 30.0, "start_delay": 0.0}
@@ -113,6 +115,7 @@ def test_latched_tf_static_reaches_a_subscriber_that_starts_after_it_was_publish
                                    atol=1e-9)
 
 
+@pytest.mark.slow
 def test_node_logs_a_malformed_message_and_keeps_processing(listener):
     types = rclpy_types()
     publish = {

@@ -46,6 +46,7 @@ def test_package_xml_is_format3_ament_python_with_the_message_dependencies():
     assert MSG_DEPENDENCIES <= depends
 
 
+@pytest.mark.slow
 def test_node_help_lists_every_parameter_with_its_default():
     exe = Path(get_package_prefix("mosiv_ros")) / "lib" / "mosiv_ros" / "identify_node"
     out = subprocess.run([str(exe), "--help"], capture_output=True, text=True, timeout=60)
@@ -54,6 +55,7 @@ def test_node_help_lists_every_parameter_with_its_default():
         assert f"  {name} (default {default!r})" in out.stdout
 
 
+@pytest.mark.slow
 def test_node_starts_and_stops_cleanly_on_sigint():
     with Graph([NodeSpec("prediction_node")], sink=None) as graph:
         node = graph.nodes["prediction_node"]
@@ -63,6 +65,7 @@ def test_node_starts_and_stops_cleanly_on_sigint():
     assert codes == {"prediction_node": 0}
 
 
+@pytest.mark.slow
 def test_bad_parameter_value_stops_the_node_with_a_clear_error(tmp_path):
     with Graph([NodeSpec("bag_replay_node", {"bag": str(tmp_path / "nope")})], sink=None) as graph:
         node = graph.nodes["bag_replay_node"]

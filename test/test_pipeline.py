@@ -28,6 +28,7 @@ from mosiv_ros.predict.twin import Twin
 from mosiv_ros.report import _markdown
 
 
+@pytest.mark.slow
 def test_mosiv_run_writes_estimates_report_and_plots_and_scores_held_out_frames(
         drop_bag, fast_params, tmp_path):
     out = tmp_path / "run"
@@ -49,6 +50,7 @@ def test_mosiv_run_writes_estimates_report_and_plots_and_scores_held_out_frames(
     assert "| jelly | elastic | E |" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 def test_five_nodes_give_a_late_subscriber_latched_estimates_and_future_predictions(
         drop_bag, fast_params, tmp_path):
     # Real-time replay: camera topics are best effort with a short queue (the sensor-data

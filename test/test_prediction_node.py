@@ -109,6 +109,7 @@ def _set(listener: Listener, client, name: str, value: str):
     return future.result().results[0]
 
 
+@pytest.mark.slow
 def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_requests(
         drop_bag, prepared, tmp_path):
     estimates = _estimates(prepared.frames[0].stamp_ns)
@@ -155,6 +156,7 @@ def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_req
     np.testing.assert_allclose(got, expected, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_prediction_node_refuses_unusable_estimates_at_start_with_one_clear_line():
     result = subprocess.run([str(executable_path("prediction_node")), "--ros-args", "-p",
                              "estimates:=nonsense"], capture_output=True, text=True, timeout=60)

@@ -31,6 +31,7 @@ def listener():
     node.close()
 
 
+@pytest.mark.slow
 def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path, listener):
     bag = write_recording(sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72),
                           tmp_path / "touching")
@@ -69,6 +70,7 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
         np.testing.assert_array_equal(got.fields[name], values, err_msg=name)
 
 
+@pytest.mark.slow
 def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stops_it(tmp_path, listener):
     recording = sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72)
     recording.cameras["cam2"].frames = recording.cameras["cam2"].frames[:2]

@@ -15,6 +15,7 @@ from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_pa
 from mosiv_ros.synth.suite import FAMILY_DEFAULTS, SHAPE_SET, suite_scenes
 
 
+@pytest.mark.slow
 def test_tiny_suite_records_every_unordered_family_pairing_as_readable_bags(tmp_path):
     assert main(["make-suite", str(tmp_path / "suite"), "--size", "tiny"]) == 0
     index = yaml.safe_load((tmp_path / "suite" / "suite.yaml").read_text())
