@@ -106,7 +106,7 @@ def prepare(bag: str | Path, config: RunConfig,
 
 def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         progress: Progress | None = None) -> RunResult:
-    """Run every stage on a recording; see the module docstring; ``progress`` as in ``mosiv_ros.progress``."""
+    """Run every stage on a recording (the module docstring); ``progress``: ``mosiv_ros.progress``."""
     config = config or RunConfig()
     return run_prepared(prepare(bag, config, progress), out, config, progress)
 

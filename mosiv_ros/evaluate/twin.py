@@ -11,10 +11,10 @@ For every frame of the recording (the twin's frames are the observation frames),
 Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
 compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
 bulk modulus, viscosity), absolute difference for nu, a vector's components and a true value of
-zero, relative difference otherwise. Geometry
-cannot tell mass, so a fit at an assumed density that is not the true one can only get a scale
-parameter right per unit density (a body's accelerations follow div(sigma) / rho): scale
-parameters also carry the log10 ratio of parameter / density against the truth's.
+zero, relative difference otherwise. Geometry cannot tell mass, so a fit at an assumed density
+that is not the true one can only get a scale parameter right per unit density (a body's
+accelerations follow div(sigma) / rho): scale parameters also carry the log10 ratio of
+parameter / density against the truth's.
 
 What it is for: the report of ``mosiv run`` and the identification benchmark.
 What it is not for: losses (``identify.losses``).

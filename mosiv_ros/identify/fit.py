@@ -581,23 +581,24 @@ class Identifier:
             unit = (strata + rng.random(strata.shape)) / s.search_samples
             return self._best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
 
+        def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
+            self.report({"phase": "search", "done": done * s.search_samples,
+                         "total": rounds * s.search_samples})
+
         if s.search_samples > 0:
+            rounds = 1 + max(1, s.search_starts) * s.search_rounds  # fewer if starts diverge
+            searched(0)
             # the first round's best points are the starts: each narrows on its own basin
-            self.report({"phase": "search", "done": 0,
-                         "total": (1 + max(1, s.search_starts) * s.search_rounds) * s.search_samples})
             starts = round_(u, 0, max(1, s.search_starts))
             rounds = 1 + len(starts) * s.search_rounds
-            self.report({"phase": "search", "done": s.search_samples,
-                         "total": rounds * s.search_samples})
+            searched(1)
             ends = []
             for k, (start, loss) in enumerate(starts):
                 for number in range(1, s.search_rounds + 1):
                     found = round_(start, number, 1)
                     if found:
                         start, loss = found[0]
-                    done = 1 + k * s.search_rounds + number
-                    self.report({"phase": "search", "done": done * s.search_samples,
-                                 "total": rounds * s.search_samples})
+                    searched(1 + k * s.search_rounds + number)
                 _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
                           self._values_of(start))
                 ends.append((loss, start))

@@ -100,6 +100,7 @@ def _plain(value: float) -> float | int:
 RESERVED_NAME = "scene"
 """No object takes this name: estimates and reports use it for the ground's and effects' values."""
 
+
 @dataclass
 class SceneObject:
     """One declared object: its mask id, unique name, material family and known parameters.

@@ -183,9 +183,9 @@ class LoopError(ValueError):
 class LoopClosure:
     """The loop on one recording's stages 1-2 output (see the module docstring).
 
-    ``progress(phase, done, total, unit)`` follows every fit (``identify.run.phase_progress``). ``reobserver`` (stages
-    1-2 of the recording, remade on demand) lets the library's sensor effects correct the
-    observations; without it they are not tried.
+    ``progress(phase, done, total, unit)`` follows every fit (``identify.run.phase_progress``).
+    ``reobserver`` (stages 1-2 of the recording, remade on demand) lets the library's sensor
+    effects correct the observations; without it they are not tried.
 
     The frames from ``stamp_ns`` of the ``window``-th given frame on are held out; a model
     whose observations were remade (a sensor effect) is scored on the same stamps.
