@@ -13,7 +13,7 @@ import pytest
 import yaml
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
-from mosiv_ros.cli import default_parameters_yaml
+from mosiv_ros.cli import default_parameters_yaml, load_params_file
 from mosiv_ros.config import STAGE_CONFIGS, describe
 from mosiv_ros.graph import Graph, NodeExited, NodeSpec, exit_description
 
@@ -99,6 +99,17 @@ def test_params_file_equals_the_config_defaults():
         for name, default, help_text in describe(config):
             assert params[name] == default and type(params[name]) is type(default)
             assert help_text, f"{node}.{name} has no description"
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
+def test_every_shipped_params_file_names_known_nodes_and_parameters_of_their_types(path):
+    configs = load_params_file(path)  # unknown nodes or parameters are refused
+    document = yaml.safe_load(path.read_text())
+    for node, section in document.items():
+        for name, value in section["ros__parameters"].items():
+            default = getattr(STAGE_CONFIGS[node](), name)
+            assert type(value) is type(default), (node, name, value)
+            assert getattr(configs[node], name) == value
 
 
 def test_launch_file_starts_all_five_executables_with_the_params_file():

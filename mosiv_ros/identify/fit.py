@@ -145,6 +145,10 @@ class FitProblem:
     free: list[str]
     fixed: dict[str, set[str]] = field(default_factory=dict)
     boundary: Boundary | None = None
+    initial_velocity: np.ndarray | None = None
+    """(K, 3) m/s: where known better than the first frames' centroids tell (NaN rows: not)."""
+    warm_start: tuple[np.ndarray, np.ndarray] | None = None
+    """(u, velocity) where an earlier fit of this same problem ended: start there, no search."""
 
 
 @dataclass
@@ -614,7 +618,9 @@ class Identifier:
         n = obs.n_frames - 1
         velocity = np.zeros((obs.n_objects, 6))
         velocity[:, :3] = obs.initial_velocities()
-        moving = np.linalg.norm(velocity[:, :3], axis=1) > 0
+        if self.problem.initial_velocity is not None:
+            known = np.isfinite(self.problem.initial_velocity[:, 0])
+            velocity[known, :3] = self.problem.initial_velocity[known]
         u = self._pack()
         adam = _Adam(np.r_[np.full(len(u), s.learning_rate),
                            np.full(velocity.size, s.velocity_learning_rate)])
@@ -626,11 +632,16 @@ class Identifier:
             u, velocity, adam, history, stage0, iteration0, failures = resumed
             _LOG.info("resuming identification from %s: stage %d, iteration %d",
                       self.settings.checkpoint_dir, stage0, iteration0)
+        elif self.problem.warm_start is not None:
+            u, velocity = (np.array(a, dtype=np.float64) for a in self.problem.warm_start)
+            self._apply(u, velocity)
+            self.start = (u.copy(), velocity.copy())
         else:
             tick = time.perf_counter()
             u = self._search(velocity)
             search_s = time.perf_counter() - tick
             self.start = (u.copy(), velocity.copy())
+        moving = np.linalg.norm(velocity[:, :3], axis=1) > 0
         stages = [h if 0 < h < n else n for h in s.curriculum]
         for stage in range(stage0, len(stages)):
             length = stages[stage]
@@ -750,6 +761,8 @@ class Identifier:
             "frame_dt": obs.frame_dt, "particles": int(len(self.index)),
             "centroids": np.round(np.nan_to_num(self.observed_centroids), 6).tolist(),
             "settings": self.settings.result_settings(),
+            "initial_velocity": _rounded(self.problem.initial_velocity),
+            "warm_start": [_rounded(a) for a in self.problem.warm_start or ()],
         })
         return hashlib.sha256(text.encode()).hexdigest()
 
@@ -788,6 +801,10 @@ class Identifier:
         except (OSError, KeyError, ValueError) as error:
             _LOG.warning("cannot read checkpoint %s (%s); starting afresh", path, error)
             return None
+
+
+def _rounded(a: np.ndarray | None) -> list | None:
+    return None if a is None else np.round(np.nan_to_num(np.asarray(a, dtype=np.float64)), 9).tolist()
 
 
 def _component(name: str) -> tuple[str, int | None]:

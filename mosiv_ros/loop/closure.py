@@ -9,7 +9,9 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    scored on the same stamps, against its own observations.
 2. Fit the declared model (``identify.run.fit_problem``) and roll its twin over every frame. An
    object whose family the scene leaves open gets the family ``identify.family`` chooses on the
-   fitted frames, once, before this first fit; every later model keeps it.
+   fitted frames, once, before this first fit; every later model keeps it. Measure the
+   free-flight evidence of the fitted frames (``loop.freeflight``): in flight the centre of mass
+   shows the external force, whatever the materials, so a fit cannot hide an effect there.
 3. Analyse the residual (``loop.residual``). The evidence vector is the centroid residual of
    every object and frame (divided by ``centroid_noise``) and the radius-of-gyration residual
    (divided by ``shape_noise``), all frames after the first. What a refit of the same model
@@ -21,17 +23,27 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    effect's: in the observations), the change of the evidence per unit of the knob is one
    column, and a bounded least-squares fit (knobs inside their ranges, the nuisance terms free)
    gives the explained fraction R^2 = 1 - |rest after| ^2 / |rest before|^2 and a first
-   estimate of each knob.
-5. Refit the model with each of the ``top_k`` leading candidates whose R^2 reaches
-   ``min_explained`` (the effect's knobs start at their first estimate, the objects' parameters
-   afresh, as in the first fit; a sensor effect's model on its corrected observations), and
-   roll out each twin.
+   estimate of each knob. Then free flight weighs in (``weigh_flight``): where it shows a force
+   the current model lacks, the candidates are those whose force law explains at least
+   ``min_explained`` of it there, in order of their free-flight AIC (a law more than
+   ``AIC_GAP`` behind the best is dropped), with the knob values and initial velocities free
+   flight gives them; an effect with no free-flight force (a floor's, damping, a sensor's) waits
+   for a later round. Where free flight shows no force, a force-law candidate whose first
+   estimate would have shown there is ruled out.
+5. Refit the current model with no new effect, warm-started and given a candidate's budget (the
+   control: a better fit alone is never credited to an effect; if it beats the current model it
+   becomes the current model), and the model with each of the ``top_k`` leading candidates
+   whose R^2 reaches ``min_explained`` (the effect's knobs start at their first estimate, the
+   objects' parameters afresh, as in the first fit; a sensor effect's model on its corrected
+   observations), and roll out each twin.
 6. **Acceptance**: a candidate with p knobs is accepted when its held-out centroid error E_new
    (RMS over the held-out frames and objects) satisfies
    E_new <= margin * exp(-penalty * p) * E_current
    (defaults 0.8 and 0.1: a one-knob effect must cut the held-out error by 28 %, a two-knob one
-   by 35 %); equivalently its penalised score ln E + penalty * p beats the current model's by
-   ln(1 / margin). Of several accepted, the lowest held-out error wins.
+   by 35 %), E_current the better of the current model and its control; equivalently its
+   penalised score ln E + penalty * p beats the current model's by ln(1 / margin). Of several
+   accepted, the lowest held-out error wins. Each model's AIC and BIC on the fitted frames
+   (``information``) are reported beside.
 7. Repeat from 3 with the accepted effect in the model, at most ``max_rounds`` times.
 
 Verdicts: ``nothing to explain`` (the first residual is at the noise level), ``explained``
@@ -55,6 +67,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import lsq_linear
+from scipy.stats import chi2
 
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
@@ -71,6 +84,7 @@ from mosiv_ros.identify.run import (
 )
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.loop.freeflight import P_VALUE, FreeFlight, combine, free_flight
 from mosiv_ros.loop.library import LIBRARY, Candidate, Context
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
@@ -82,6 +96,9 @@ from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
 
 _LOG = logging.getLogger(__name__)
 
+AIC_GAP = 10.0
+"""A force law whose free-flight AIC exceeds the best's by more than this is not refitted
+(Burnham and Anderson: essentially no support)."""
 NOTHING, EXPLAINED, UNEXPLAINED, PARTLY = ("nothing to explain", "explained", "unexplained",
                                            "partly explained")
 
@@ -132,6 +149,8 @@ class Model:
     prediction: Prediction
     analysis: ResidualAnalysis
     seconds: float
+    information: dict[str, float] = field(default_factory=dict)
+    """AIC and BIC on the fitted frames (``LoopClosure.information``)."""
 
     @property
     def names(self) -> list[str]:
@@ -143,8 +162,28 @@ class Model:
 
 
 @dataclass
+class Flight:
+    """What the free-flight evidence says of a candidate (``loop.freeflight``).
+
+    ``explained``: the share of the current model's free-flight excess its force law removes;
+    ``aic``: chi-square plus twice the knobs; ``values`` / ``std``: its knobs fitted there.
+    """
+
+    explained: float
+    chi2: float
+    aic: float
+    values: dict[str, float]
+    std: dict[str, float]
+
+
+@dataclass
 class Ranked:
-    """A candidate's ranking: explained fraction, first knob estimates, and its refit, if any."""
+    """A candidate's ranking: explained fraction, first knob estimates, and its refit, if any.
+
+    ``explained`` is the share of the simulated residual its signature explains; ``flight`` what
+    free flight says (None: it exerts no force there, or there is no free flight); ``velocity``
+    (K, 3) the initial velocities its refit starts from (NaN rows: from the first frames).
+    """
 
     candidate: Candidate
     explained: float
@@ -154,6 +193,9 @@ class Ranked:
     threshold: float = math.nan
     accepted: bool = False
     note: str = ""
+    flight: Flight | None = None
+    ruled_out: bool = False
+    velocity: np.ndarray | None = None
 
 
 @dataclass
@@ -161,6 +203,10 @@ class Round:
     significance: float
     ranking: list[Ranked] = field(default_factory=list)
     accepted: str = ""
+    flight_force: bool = False
+    """A force the current model lacks acts in free flight: only force laws may explain it."""
+    control: Model | None = None
+    """The current model refitted with a candidate's budget and no new effect."""
 
 
 @dataclass
@@ -174,6 +220,8 @@ class LoopResult:
     seconds: float
     families: list[FamilyChoice] = field(default_factory=list)
     """The families chosen for objects the scene leaves open (empty: every one declared)."""
+    flight: FreeFlight | None = None
+    """The free-flight evidence of the fitted frames."""
 
 
 class LoopError(ValueError):
@@ -209,6 +257,7 @@ class LoopClosure:
         self.views, self.gripper_poses = list(views), list(gripper_poses)
         self.library, self.progress = list(library), progress
         self.families: list[FamilyChoice] = []
+        self.flight: FreeFlight | None = None
         self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
                       if scene.ground is not None else None)
 
@@ -255,11 +304,14 @@ class LoopClosure:
         return problem
 
     def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
-            label: str) -> Model:
+            label: str, velocity: np.ndarray | None = None, warm: Model | None = None) -> Model:
         """Fit the declared model plus ``effects`` (knobs at their initial values).
 
         The objects' parameters start afresh (at the simulator's defaults), as in the first fit:
         a fit without the missing effect distorts them, and its values are a poor start.
+        ``velocity`` (K, 3; NaN rows: estimate from the first frames) starts the initial
+        velocities. ``warm``: a fit of the same model to continue from (no search), the control
+        of an acceptance.
         """
         tick = time.perf_counter()
         scene = self.scene
@@ -267,6 +319,10 @@ class LoopClosure:
             scene = candidate.declare(scene, values, ctx)
         observations = self.observations(effects, ctx)
         problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
+        problem.initial_velocity = velocity
+        if warm is not None:
+            result = warm.identification.result
+            problem.warm_start = (result.u, result.velocity)
         identification = fit_problem(problem, self.identify,
                                      phase_progress(self.progress, label),
                                      self.fitted_frames(observations))
@@ -280,8 +336,10 @@ class LoopClosure:
         _LOG.info("%s: held-out centroid error %.2f mm (fitted frames %.2f mm), %s", label,
                   analysis.errors()["held_out"] * 1e3, analysis.errors()["fitted"] * 1e3,
                   ", ".join(f"{k}={v:.4g}" for _, values in fitted for k, v in values.items()) or "declared model")
-        return Model(fitted, closed, observations, _material_estimates(identification.estimates),
-                     identification, prediction, analysis, time.perf_counter() - tick)
+        model = Model(fitted, closed, observations, _material_estimates(identification.estimates),
+                      identification, prediction, analysis, time.perf_counter() - tick)
+        model.information = self.information(model)
+        return model
 
     def rollout(self, identifier: Identifier, observations: Observations) -> Prediction:
         """The identifier's simulation, as it stands, over every observed frame."""
@@ -307,6 +365,43 @@ class LoopClosure:
         views = self.views if self.loop.silhouettes else ()
         return analyse(observations.frames, prediction, self.fitted_frames(observations), self.floor,
                        views, self.loop.contact_tolerance)
+
+    def free_flight(self, model: Model, observations: Observations | None = None) -> FreeFlight:
+        """The free-flight evidence of the fitted frames of ``observations`` (default: the given).
+
+        Free means clear of the floor, the other objects and the gripper by the reconstruction's
+        voxel plus the model's grid spacing (its contact reach).
+        """
+        problem = model.identification.identifier.problem
+        observations = observations or self.given
+        frames = observations.frames[: self.fitted_frames(observations)]
+        voxel = max((g.voxel_size for f in frames for g in f.objects.values()), default=0.0)
+        gravity = next(e.initial["g"] for e in problem.sim_config.effects if e.name == "gravity")
+        times = np.array([(f.stamp_ns - frames[0].stamp_ns) * 1e-9 for f in frames])
+        return free_flight(frames, list(model.prediction.object_ids), times, self.floor, gravity,
+                           voxel + problem.sim_config.dx, problem.sim_config.colliders, self.views)
+
+    def information(self, model: Model) -> dict[str, float]:
+        """AIC and BIC of a model from its fitted frames' evidence (noise units) and its parameters.
+
+        n residuals r (centroid and shape, frames 1 .. fitted - 1), p = free parameters plus six
+        initial-velocity components per object: AIC = n ln(|r|^2 / n) + 2 p, BIC = n ln(|r|^2 / n)
+        + p ln n. Lower is better; a difference below 2 says little, above 10 much.
+        """
+        fitted = self.fitted_frames(model.observations)
+        n_frames, n_objects = len(model.prediction.times), len(model.prediction.object_ids)
+        r = self.evidence(model.prediction, model.observations.frames)
+        keep = np.zeros((n_frames - 1, n_objects, 4), dtype=bool)
+        keep[: fitted - 1] = True
+        centroid = keep[..., :3].ravel()
+        shape = keep[..., 3].ravel()
+        r = r[np.concatenate([centroid, shape])]
+        r = r[np.isfinite(r)]
+        n = len(r)
+        p = len(model.identification.identifier.entries) + 6 * n_objects
+        rss = max(float(r @ r), 1e-12)
+        return {"aic": n * math.log(rss / n) + 2 * p, "bic": n * math.log(rss / n) + p * math.log(n),
+                "n": n, "p": p}
 
     # --- evidence and ranking ----------------------------------------------------------------
 
@@ -391,6 +486,69 @@ class LoopClosure:
                     for i, k in enumerate(knobs)}
         return Ranked(candidate, explained, estimate)
 
+    def weigh_flight(self, ranking: list[Ranked], current: Model, ctx: Context) -> bool:
+        """Annotate ``ranking`` with the free-flight evidence; True when a force acts there.
+
+        Where a force beyond the current model's acts in free flight, a candidate is weighed by
+        the share of it its force law explains, starts its refit from the knob values and
+        initial velocities free flight gives it; a sensor effect by the share its corrected
+        observations remove (a badly timed camera bends the carved centroids too); any other
+        candidate cannot explain it. Where none acts, a force-law candidate whose first estimate would have
+        shown in free flight is ruled out.
+        """
+        flight = self.flight
+        if flight is None or not flight.segments:
+            return False
+        base_law = combine(*(c.force_law(ctx) for c, _ in current.effects))
+        base = flight.fit(base_law)
+        acting = flight.acts(base)
+        for ranked in ranking:
+            law = ranked.candidate.force_law(ctx)
+            corrected = ranked.candidate.observe(ranked.estimate, ctx) if acting else None
+            if law is None and corrected is not None:  # a sensor effect: does its correction remove it?
+                after = self.free_flight(current, corrected)
+                left = after.fit(base_law) if after.segments else None
+                share = (1.0 - (left.chi2 - after.chi2_flexible) / max(base.chi2 - flight.chi2_flexible, 1e-12)
+                         if left is not None else 0.0)
+                ranked.flight = Flight(float(np.clip(share, 0.0, 1.0)), math.nan, math.nan, {}, {})
+                continue
+            if law is None:
+                if acting:
+                    ranked.note = "free flight shows a force this effect does not exert"
+                continue
+            joint = combine(base_law, law)
+            fit = flight.fit(joint)
+            values = {label: fit.values[label] for label in law.labels}
+            ranked.flight = Flight(flight.explained(fit, base), fit.chi2, fit.chi2 + 2 * len(law.labels),
+                                   values, {label: fit.std[label] for label in law.labels})
+            if acting:
+                ranked.estimate = {**ranked.estimate, **values}
+                ranked.velocity = np.full((len(ctx.names), 3), np.nan)
+                for k, v in fit.initial_velocity.items():
+                    ranked.velocity[k] = v
+                continue
+            at = flight.chi2_at(joint, {**base.values, **ranked.estimate})
+            if at - base.chi2 > chi2.ppf(1.0 - P_VALUE, len(law.labels)):
+                ranked.ruled_out = True
+                ranked.note = (f"ruled out by free flight: at its first estimate the flights would "
+                               f"show a force they do not (chi-square +{at - base.chi2:.0f})")
+        return acting
+
+    def leading(self, round_: Round) -> list[Ranked]:
+        """The candidates to refit this round (see ``weigh_flight``)."""
+        loop = self.loop
+        if round_.flight_force:
+            able = [r for r in round_.ranking
+                    if r.flight is not None and r.flight.explained >= loop.min_explained]
+            laws = [r for r in able if math.isfinite(r.flight.aic)]  # sensor effects have no law
+            best = min((r.flight.aic for r in laws), default=math.inf)
+            for r in laws:
+                if r.flight.aic > best + AIC_GAP:
+                    r.note = f"free flight fits it far worse than the best (AIC +{r.flight.aic - best:.0f})"
+            able = [r for r in able if not r.flight.aic > best + AIC_GAP]
+            return sorted(able, key=lambda r: -r.flight.explained)[: loop.top_k]
+        return [r for r in round_.ranking if r.explained >= loop.min_explained and not r.ruled_out][: loop.top_k]
+
     # --- the loop ----------------------------------------------------------------------------
 
     def run(self) -> LoopResult:
@@ -398,6 +556,12 @@ class LoopClosure:
         loop = self.loop
         self.families = self.choose_families()
         before = current = self.fit([], None, "fit declared model")
+        self.flight = self.free_flight(before)
+        if self.flight.segments:
+            _LOG.info("free flight: %d frames in %d segments; external force %.2f m/s^2 (p = %.2g): %s",
+                      self.flight.frames, len(self.flight.segments), self.flight.force(self.flight.null),
+                      self.flight.p_value(self.flight.null),
+                      "significant" if self.flight.significant else "not significant")
         rounds: list[Round] = []
         verdict = ""
         for _ in range(loop.max_rounds):
@@ -412,10 +576,15 @@ class LoopClosure:
             ctx = self.context(current)
             have = set(current.names)
             candidates = [c for c in self.library if c.name not in have and c.applicable(ctx)]
-            round_.ranking = sorted((self.rank(c, current, ctx) for c in candidates),
-                                    key=lambda r: -r.explained)
-            _LOG.info("ranking: %s", ", ".join(f"{r.candidate.name} {r.explained:.2f}" for r in round_.ranking))
-            leading = [r for r in round_.ranking if r.explained >= loop.min_explained][:loop.top_k]
+            round_.ranking = [self.rank(c, current, ctx) for c in candidates]
+            round_.flight_force = self.weigh_flight(round_.ranking, current, ctx)
+            round_.ranking.sort(key=lambda r: -_weight(r, round_.flight_force))
+            _LOG.info("ranking: %s", ", ".join(_describe(r) for r in round_.ranking))
+            leading = self.leading(round_)
+            if leading:  # the control: the current model given a candidate's budget, no new effect
+                round_.control = self.fit(current.effects, ctx, "refit without a new effect", warm=current)
+                if round_.control.held_out_error < current.held_out_error:
+                    current = round_.control
             for ranked in leading:
                 self.try_candidate(ranked, current, ctx)
             accepted = [r for r in leading if r.accepted]
@@ -429,7 +598,7 @@ class LoopClosure:
             verdict = EXPLAINED if self.significance(current) <= loop.significance else PARTLY
         _LOG.info("loop closure: %s; effects added: %s", verdict, ", ".join(current.names) or "none")
         return LoopResult(before, current, rounds, verdict, self.window, loop,
-                          time.perf_counter() - tick, self.families)
+                          time.perf_counter() - tick, self.families, self.flight)
 
     def choose_families(self) -> list[FamilyChoice]:
         """The family of every object the scene leaves open, chosen on the fitted frames.
@@ -445,7 +614,7 @@ class LoopClosure:
         candidate = ranked.candidate
         effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
         try:
-            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}")
+            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}", ranked.velocity)
         except (SimulationError, ValueError) as error:
             ranked.note = f"refit failed: {error}"
             return
@@ -453,6 +622,20 @@ class LoopClosure:
         ranked.ratio = ranked.refit.held_out_error / max(current.held_out_error, 1e-12)
         ranked.accepted = bool(ranked.ratio <= ranked.threshold)
         ranked.note = (f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})")
+
+
+def _weight(ranked: Ranked, flight_force: bool) -> float:
+    """What orders a round's ranking: the free-flight share where a force acts there."""
+    if flight_force:
+        return ranked.flight.explained if ranked.flight is not None else -math.inf
+    return ranked.explained
+
+
+def _describe(ranked: Ranked) -> str:
+    text = f"{ranked.candidate.name} {ranked.explained:.2f}"
+    if ranked.flight is not None:
+        text += f" (free flight {ranked.flight.explained:.2f})"
+    return text + (" ruled out" if ranked.ruled_out else "")
 
 
 def _material_estimates(estimates: Estimates) -> Estimates:

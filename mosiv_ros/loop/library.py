@@ -11,7 +11,10 @@ A ``Candidate`` is one effect the loop can add to a scene's model. It declares
 - ``read(estimates, prediction, ctx)``: the fitted knob values from a refit's estimates (and,
   for an effect fitted on the observation side, from its rolled-out twin);
 - ``observe(values, ctx)``: for a sensor effect, the observations (stages 1-2) corrected for
-  it (``loop.observations``); None for a physical effect, which leaves them as they are.
+  it (``loop.observations``); None for a physical effect, which leaves them as they are;
+- ``force_law(ctx)``: the external force per unit mass its knobs put on an object in free flight
+  (``loop.freeflight.ForceLaw``), or None for an effect that puts none there (a floor's, an
+  internal damping, a sensor's): the evidence no material can absorb (``loop.freeflight``).
 
 Its residual signature is what the effect does to the residual: the loop switches each knob on
 by its ``probe`` step alone, in the current twin for a physical effect (rolled out) or in the
@@ -59,6 +62,7 @@ import numpy as np
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.observations import View
 from mosiv_ros.io.scene import DeclaredEffect, Scene
+from mosiv_ros.loop.freeflight import ForceLaw
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import camera_time_offset
 from mosiv_ros.predict.twin import Prediction
@@ -131,6 +135,10 @@ class Candidate:
         """The observations corrected for a sensor effect at ``values``; None: unchanged."""
         return None
 
+    def force_law(self, ctx: Context) -> ForceLaw | None:
+        """Its free-flight force per unit mass (None: it exerts none on a free object)."""
+        return None
+
 
 def _with_effect(scene: Scene, effect: DeclaredEffect) -> Scene:
     result = copy.deepcopy(scene)
@@ -172,6 +180,26 @@ class PerObjectEffect(Candidate):
         full = f"{self.name}.{self.param}"
         return {self.label(o.name): o.params[full] for o in estimates.objects if full in o.params}
 
+    @staticmethod
+    def acceleration(v: np.ndarray) -> np.ndarray | None:
+        """(n, 3) acceleration per unit coefficient at velocities ``v`` (None: no free-flight force)."""
+        return None
+
+    def force_law(self, ctx: Context) -> ForceLaw | None:
+        if self.acceleration(np.zeros((1, 3))) is None:
+            return None
+        movers = [k for k, m in enumerate(ctx.moving) if m]
+
+        def columns(k: int, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+            out = np.zeros(x.shape + (len(movers),))
+            if k in movers:
+                out[..., movers.index(k)] = self.acceleration(v)
+            return out
+
+        knobs = self.knobs(ctx)
+        return ForceLaw([k.label for k in knobs], np.array([k.lower for k in knobs]),
+                        np.array([k.upper for k in knobs]), columns)
+
 
 class QuadraticDragCandidate(PerObjectEffect):
     name = "drag"
@@ -180,6 +208,10 @@ class QuadraticDragCandidate(PerObjectEffect):
     doc = "quadratic air drag a = -c |v| v, c per moving object (1/m)"
     signature = "deceleration along the velocity, growing with speed squared (fast flight)"
 
+    @staticmethod
+    def acceleration(v: np.ndarray) -> np.ndarray:
+        return -np.linalg.norm(v, axis=-1, keepdims=True) * v
+
 
 class LinearDragCandidate(PerObjectEffect):
     name = "linear_drag"
@@ -187,6 +219,10 @@ class LinearDragCandidate(PerObjectEffect):
     probe = 0.5
     doc = "linear drag a = -c v, c per moving object (1/s)"
     signature = "deceleration along the velocity, proportional to speed"
+
+    @staticmethod
+    def acceleration(v: np.ndarray) -> np.ndarray:
+        return -v
 
 
 class DampingCandidate(PerObjectEffect):
@@ -216,6 +252,17 @@ class WindCandidate(Candidate):
 
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return {label: estimates.scene[label] for label in self.LABELS}
+
+    def force_law(self, ctx: Context) -> ForceLaw:
+        knobs = self.knobs(ctx)
+
+        def columns(k: int, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+            out = np.zeros(x.shape + (2,))
+            out[:, 0, 0] = out[:, 1, 1] = 1.0
+            return out
+
+        return ForceLaw(list(self.LABELS), np.array([k.lower for k in knobs]),
+                        np.array([k.upper for k in knobs]), columns)
 
 
 class FloorTiltCandidate(Candidate):

@@ -3,17 +3,21 @@
 ``close_loop(bag, out, config, loop)`` runs stages 1-2 (``pipeline.prepare``), the loop
 (``closure.LoopClosure``) and writes into ``out``:
 
-- ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, every
-  round's candidate ranking (explained fraction, first knob estimates, refit held-out error,
-  ratio against the acceptance threshold, accepted or not), the accepted effects with their
+- ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, the
+  free-flight evidence (segments, noise, the force shown and its p-value), every round's
+  control refit and candidate ranking (explained fraction of the residual and of the free-flight
+  force, first knob estimates, refit held-out error and AIC, ratio against the acceptance
+  threshold, accepted or not, why not), the accepted effects with their
   fitted values, the model before and after (estimates, centroid errors on the fitted and the
   held-out frames, CD/EMD (and IoU, PSNR, SSIM unless ``render`` is off) from
   ``evaluate.twin``, parameter errors against ``ground_truth.yaml`` for a synthetic recording)
   and the residual analysis of both;
 - ``close_loop.md``: the same for a person to read;
 - plots per object: ``<object>_residual.png`` (centroid and shape residual over time, before
-  and after) and ``<object>_paths.png`` (observed vs predicted centroid paths, before and
-  after), and ``ranking.png`` (the candidates of every round);
+  and after), ``<object>_paths.png`` (observed vs predicted centroid paths, before and
+  after) and, for an object that flies free, ``<object>_free_flight.png`` (its observed
+  acceleration there against the declared gravity), and ``ranking.png`` (the candidates of
+  every round);
 - ``closed_scene.yaml`` (the scene declaration with the accepted effects: a ``scene`` parameter
   for prediction_node) and ``estimates.yaml`` (the closed model's estimates).
 
@@ -33,6 +37,7 @@ from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
+from mosiv_ros.loop.freeflight import MIN_FORCE, MIN_FRAMES, P_VALUE
 from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
 from mosiv_ros.loop.observations import Reobserver
 from mosiv_ros.pipeline import Prepared, RunConfig, prepare
@@ -72,7 +77,11 @@ def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | 
         "config": dict(result.config.__dict__),
         "families": [asdict(choice) for choice in result.families],
         "accepted": [_effect(c, values) for c, values in result.after.effects],
+        "free_flight": _flight(result),
         "rounds": [{"significance": r.significance, "accepted": r.accepted,
+                    "flight_force": r.flight_force,
+                    "control": None if r.control is None else {
+                        "centroid_error": r.control.analysis.errors(), "information": r.control.information},
                     "ranking": [_ranked(x) for x in r.ranking]} for r in result.rounds],
         "before": _model(result.before, prepared, truth, truth_particles, render),
         "after": _model(result.after, prepared, truth, truth_particles, render),
@@ -97,15 +106,34 @@ def _effect(candidate, values: dict[str, float]) -> dict:
 def _ranked(ranked) -> dict:
     return {"name": ranked.candidate.name, "signature": ranked.candidate.signature,
             "explained": ranked.explained, "estimate": ranked.estimate,
+            "free_flight": None if ranked.flight is None else asdict(ranked.flight),
+            "ruled_out": ranked.ruled_out,
             "refit_held_out_error": ranked.refit.held_out_error if ranked.refit else None,
             "refit_values": dict(ranked.refit.effects[-1][1]) if ranked.refit else None,
+            "refit_information": ranked.refit.information if ranked.refit else None,
             "ratio": ranked.ratio, "threshold": ranked.threshold, "accepted": ranked.accepted,
             "note": ranked.note}
+
+
+def _flight(result: LoopResult) -> dict | None:
+    flight = result.flight
+    if flight is None:
+        return None
+    names = result.before.analysis.names
+    entry = {"segments": [{"object": names[s.object], "frames": [s.start, s.stop - 1]} for s in flight.segments],
+             "reach_m": flight.reach, "frames": flight.frames}
+    if flight.null is not None:
+        entry.update({"noise_m": {names[k]: float(v) for k, v in enumerate(flight.noise) if np.isfinite(v)},
+                      "chi2_null": flight.chi2_null, "chi2_smooth": flight.chi2_flexible,
+                      "p_value": flight.p_value(flight.null), "force": flight.force(flight.null),
+                      "significant": flight.significant})
+    return entry
 
 
 def _model(model: Model, prepared: Prepared | None, truth, truth_particles, render: bool) -> dict:
     entry = {"effects": [_effect(c, v) for c, v in model.effects],
              "centroid_error": model.analysis.errors(), "fit_seconds": model.seconds,
+             "information": model.information,
              "estimates": model.estimates.to_dict(), "residual": model.analysis.to_dict()}
     if prepared is not None:
         observations = model.observations
@@ -139,14 +167,32 @@ def _markdown(report: dict, plots: list[str]) -> str:
         lines += ["", "Ground truth: " + ", ".join(
             f"{e['type']} ({'declared' if e['declared'] else 'undeclared'}) {e['params']}"
             for e in report["truth_effects"])]
+    flight = report.get("free_flight")
+    if flight:
+        lines += ["", "## Free flight", ""]
+        if "p_value" not in flight:
+            lines.append(f"No object flies free for {MIN_FRAMES} frames (clear of everything by "
+                         f"{flight['reach_m'] * 1e3:.0f} mm): no free-flight evidence.")
+        else:
+            segments = ", ".join(f"{s['object']} frames {s['frames'][0]}-{s['frames'][1]}"
+                                 for s in flight["segments"])
+            noise = ", ".join(f"{k} {v * 1e3:.2f} mm" for k, v in flight["noise_m"].items())
+            lines.append(f"Free (clear of everything by {flight['reach_m'] * 1e3:.0f} mm): {segments}; "
+                         f"centroid noise {noise}. External force beyond the declared gravity: "
+                         f"{flight['force']:.2f} m/s^2, p = {flight['p_value']:.2g}: "
+                         f"{'a force acts' if flight['significant'] else 'none shown'} "
+                         f"(acts when p < {P_VALUE:g} and at least {MIN_FORCE} m/s^2).")
     lines += ["", "## Error before and after", "",
-              "| model | centroid RMS fitted (mm) | centroid RMS held-out (mm) | CD observed (mm) | CD future (mm) |",
-              "| --- | --- | --- | --- | --- |"]
+              "| model | centroid RMS fitted (mm) | centroid RMS held-out (mm) | CD observed (mm) | "
+              "CD future (mm) | AIC | BIC |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
     for label, model in (("before", before), ("after", after)):
         metrics = model.get("metrics", {})
         cd = [_mm(metrics.get(part, {}).get("cd")) for part in ("observed", "future")]
+        info = model.get("information", {})
         lines.append(f"| {label} | {_mm(model['centroid_error']['fitted'])} | "
-                     f"{_mm(model['centroid_error']['held_out'])} | {cd[0]} | {cd[1]} |")
+                     f"{_mm(model['centroid_error']['held_out'])} | {cd[0]} | {cd[1]} | "
+                     f"{_num(info.get('aic'))} | {_num(info.get('bic'))} |")
     if "parameter_errors" in before:
         lines += ["", "## Parameters against the truth", "",
                   "| object | parameter | truth | before | after |", "| --- | --- | --- | --- | --- |"]
@@ -161,14 +207,24 @@ def _markdown(report: dict, plots: list[str]) -> str:
         if not round_["ranking"]:
             lines.append("No ranking: the residual is at the noise level.")
             continue
-        lines += ["| candidate | explained | first estimate | refit held-out (mm) | ratio | accepted |",
-                  "| --- | --- | --- | --- | --- | --- |"]
+        if round_["flight_force"]:
+            lines.append("A force acts in free flight that the model lacks: only an effect that exerts "
+                         "one there can explain it.")
+        control = round_.get("control")
+        if control is not None:
+            lines.append(f"Control (the model refitted with a candidate's budget, no new effect): held-out "
+                         f"{_mm(control['centroid_error']['held_out'])} mm, AIC "
+                         f"{_num(control['information'].get('aic'))}.")
+        lines += ["", "| candidate | explained | free flight | first estimate | refit held-out (mm) | "
+                  "refit AIC | ratio | accepted | note |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in round_["ranking"]:
             estimate = ", ".join(f"{k} {v:.3g}" for k, v in r["estimate"].items())
             refit = _mm(r["refit_held_out_error"]) if r["refit_held_out_error"] is not None else ""
             ratio = f"x{r['ratio']:.2f} (<= x{r['threshold']:.2f})" if r["refit_held_out_error"] is not None else ""
-            lines.append(f"| {r['name']} | {r['explained']:.2f} | {estimate} | {refit} | {ratio} | "
-                         f"{'yes' if r['accepted'] else 'no'} |")
+            flown = "" if r["free_flight"] is None else f"{r['free_flight']['explained']:.2f}"
+            aic = _num((r["refit_information"] or {}).get("aic"))
+            lines.append(f"| {r['name']} | {r['explained']:.2f} | {flown} | {estimate} | {refit} | {aic} | "
+                         f"{ratio} | {'yes' if r['accepted'] else 'no'} | {r['note']} |")
     lines += ["", "## Residual (before)", "", "| object | growth (mm/s) | oscillation | contact jump | "
               "corr. speed | corr. speed^2 | corr. height | corr. contact |",
               "| --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -226,6 +282,22 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
             axis.legend(fontsize=7)
         fig.tight_layout()
         paths.append(out / f"{name}_paths.png")
+        fig.savefig(paths[-1], dpi=90)
+        plt.close(fig)
+    flight = result.flight
+    for k, name in enumerate(before.names):
+        if flight is None or not any(s.object == k for s in flight.segments):
+            continue
+        a, sd = flight.acceleration(k)
+        fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
+        for axis_index, axis in enumerate(axes):
+            axis.errorbar(flight.times, a[:, axis_index], yerr=2 * sd[:, axis_index], fmt="k.",
+                          capsize=2, label="observed (2 sd)")
+            axis.axhline(flight.gravity[axis_index], color="tab:blue", ls="--", label="declared gravity")
+            axis.set(xlabel="t (s)", ylabel="m/s^2", title=f"{name}: free-flight a_{'xyz'[axis_index]}")
+            axis.legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(out / f"{name}_free_flight.png")
         fig.savefig(paths[-1], dpi=90)
         plt.close(fig)
     ranked = [(i, r) for i, round_ in enumerate(result.rounds, 1) for r in round_.ranking]

@@ -1,0 +1,111 @@
+"""Free-flight evidence: frames where an object touches nothing, and the force its centroid shows.
+
+Analytic flights: a 4 cm cube of voxel centres moved along a trajectory integrated here (RK4)
+under gravity and a known force law, each frame's cloud shifted by centroid noise.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from mosiv_ros.io.scene import Scene
+from mosiv_ros.loop.freeflight import MIN_FRAMES, P_VALUE, free_flight
+from mosiv_ros.loop.library import Context, LinearDragCandidate, QuadraticDragCandidate, WindCandidate
+from mosiv_ros.loop.residual import Floor
+from mosiv_ros.recon.reconstruct import ObjectGeometry, ObservedFrame
+
+G = np.array([0.0, 0.0, -9.81])
+DT = 1.0 / 30.0
+VOXEL = 0.005
+CUBE = np.stack(np.meshgrid(*[np.arange(-0.0175, 0.018, VOXEL)] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+def _path(x0, v0, force, frames: int, substeps: int = 200) -> np.ndarray:
+    """(frames, 3) centroids of x'' = g + force(v), RK4."""
+    x, v = np.array(x0, dtype=float), np.array(v0, dtype=float)
+    out = [x.copy()]
+    h = DT / substeps
+
+    def a(v):
+        return G + force(v)
+
+    for _ in range(frames - 1):
+        for _ in range(substeps):
+            k1x, k1v = v, a(v)
+            k2x, k2v = v + 0.5 * h * k1v, a(v + 0.5 * h * k1v)
+            k3x, k3v = v + 0.5 * h * k2v, a(v + 0.5 * h * k2v)
+            k4x, k4v = v + h * k3v, a(v + h * k3v)
+            x = x + h / 6 * (k1x + 2 * k2x + 2 * k3x + k4x)
+            v = v + h / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+        out.append(x.copy())
+    return np.array(out)
+
+
+def _frames(paths: dict[int, np.ndarray], noise: float = 0.0003, seed: int = 0) -> list[ObservedFrame]:
+    rng = np.random.default_rng(seed)
+    n = len(next(iter(paths.values())))
+    frames = []
+    for f in range(n):
+        objects = {}
+        for object_id, path in paths.items():
+            cloud = CUBE + path[f] + rng.normal(0.0, noise, 3)
+            objects[object_id] = ObjectGeometry(object_id, cloud, np.zeros((0, 3)), VOXEL)
+        frames.append(ObservedFrame(1_000_000_000 + int(round(f * DT * 1e9)), objects))
+    return frames
+
+
+def _context(moving: list[bool]) -> Context:
+    return Context([f"o{k}" for k in range(len(moving))], moving, Scene(), DT, [], None)
+
+
+def _flight(frames, ids, reach: float = 0.02, floor: Floor | None = Floor()):
+    return free_flight(frames, ids, np.arange(len(frames)) * DT, floor, G, reach)
+
+
+def test_a_thrown_objects_quadratic_drag_is_found_in_free_flight_with_its_coefficient_and_velocity():
+    drag = 2.0
+    path = _path([-0.2, 0.0, 0.3], [1.0, 0.0, 1.5], lambda v: -drag * np.linalg.norm(v) * v, 12)
+    flight = _flight(_frames({1: path}), [1])
+    assert [(s.start, s.stop) for s in flight.segments] == [(0, 12)]
+    assert flight.significant and flight.force(flight.null) > 1.0
+    ctx = _context([True])
+    fits = {c.name: flight.fit(c.force_law(ctx))
+            for c in (QuadraticDragCandidate(), LinearDragCandidate(), WindCandidate())}
+    quadratic = fits["drag"]
+    assert quadratic.values["drag.coefficient[o0]"] == pytest.approx(drag, rel=0.05)
+    assert quadratic.std["drag.coefficient[o0]"] < 0.1
+    assert quadratic.initial_velocity[0] == pytest.approx([1.0, 0.0, 1.5], abs=0.02)
+    assert flight.explained(quadratic) > 0.95 and not flight.acts(quadratic)  # nothing left over
+    aic = {name: fit.chi2 + 2 * len(fit.values) for name, fit in fits.items()}
+    assert aic["linear_drag"] - aic["drag"] > 10 and aic["wind"] - aic["drag"] > 10
+
+
+def test_without_an_external_force_none_is_found_and_a_drag_that_would_show_is_ruled_out():
+    path = _path([-0.2, 0.0, 0.3], [1.0, 0.0, 1.5], lambda v: np.zeros(3), 12)
+    flight = _flight(_frames({1: path}), [1])
+    assert not flight.significant and flight.p_value(flight.null) > P_VALUE
+    law = QuadraticDragCandidate().force_law(_context([True]))
+    fitted = flight.fit(law).values["drag.coefficient[o0]"]
+    assert fitted < 0.1  # a drag the flight does not show
+    worse = flight.chi2_at(law, {"drag.coefficient[o0]": 1.0}) - flight.null.chi2
+    assert worse > chi2.ppf(1.0 - P_VALUE, 1)  # a drag of 1 1/m would have shown: ruled out
+
+
+def test_only_frames_clear_of_the_floor_and_of_other_objects_are_free():
+    # a cube falls from rest towards the floor; a second one beside it passes 5 mm from it at frame 3
+    frames = np.arange(10)
+    falling = _path([0.0, 0.0, 0.17], [0.0, 0.0, 0.0], lambda v: np.zeros(3), 10)
+    passing = falling + np.outer(0.04 + 0.1 * np.abs(frames - 3), [1.0, 0.0, 0.0])
+    flight = _flight(_frames({1: falling, 2: passing}, noise=0.0), [1, 2], reach=0.02)
+    bottom = falling[:, 2] - 0.0175 - VOXEL / 2  # the lowest voxel's lower face
+    assert np.array_equal(flight.free[:, 0], (bottom > 0.02) & (frames != 3))
+    assert np.array_equal(flight.free[:, 1], flight.free[:, 0])
+    for s in flight.segments:
+        assert s.stop - s.start >= MIN_FRAMES and flight.free[s.start:s.stop, s.object].all()
+    no_floor = _flight(_frames({1: falling}, noise=0.0), [1], floor=None)
+    assert no_floor.free.all() and [(s.start, s.stop) for s in no_floor.segments] == [(0, 10)]
+    assert math.isfinite(no_floor.noise[0]) and not no_floor.significant  # free fall under gravity
