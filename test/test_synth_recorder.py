@@ -168,7 +168,8 @@ def test_record_command_refuses_to_overwrite_and_names_bad_fields(tmp_path, synt
     assert not (tmp_path / "out").exists()
 
 
-SAMPLES = ("elastic_on_plastic", "sand_and_elastic", "thrown_ball")
+SAMPLES = ("elastic_on_plastic", "sand_and_elastic", "thrown_ball", "cube_on_slab")
+HIDDEN = {"thrown_ball": ["drag"], "cube_on_slab": ["wind"]}
 
 
 @pytest.mark.parametrize("name", SAMPLES)
@@ -187,7 +188,7 @@ def test_committed_sample_bag_matches_its_scene_file_and_hides_undeclared_effect
     custom = read_custom_data(bag)
     for effect in hidden:
         assert effect not in str(custom) and effect not in (bag / "metadata.yaml").read_text()
-    assert hidden == (["drag"] if name == "thrown_ball" else [])
+    assert hidden == HIDDEN.get(name, [])
 
 
 def _raised(scene: dict, dz: float) -> dict:

@@ -622,6 +622,25 @@ class LoopClosure:
         ranked.ratio = ranked.refit.held_out_error / max(current.held_out_error, 1e-12)
         ranked.accepted = bool(ranked.ratio <= ranked.threshold)
         ranked.note = (f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})")
+        worse = self.flight_contradiction(current, ranked, ctx)
+        if worse is not None:
+            ranked.accepted = False
+            ranked.note += (f"; free flight rules out its fitted value (chi-square +{worse:.0f}): "
+                            "the refit bought its fit elsewhere")
+
+    def flight_contradiction(self, current: Model, ranked: Ranked, ctx: Context) -> float | None:
+        """How much worse (chi-square) free flight fits a refit's knob values than its best.
+
+        Only where that is beyond chance (p < ``P_VALUE``); None where free flight allows them
+        or cannot tell (no force law, no free flight).
+        """
+        law = ranked.candidate.force_law(ctx)
+        if law is None or self.flight is None or not self.flight.segments or ranked.refit is None:
+            return None
+        joint = combine(*(c.force_law(ctx) for c, _ in current.effects), law)
+        values = {k: v for _, fitted in ranked.refit.effects for k, v in fitted.items()}
+        worse = self.flight.chi2_at(joint, values) - self.flight.fit(joint).chi2
+        return worse if worse > chi2.ppf(1.0 - P_VALUE, len(joint.labels)) else None
 
 
 def _weight(ranked: Ranked, flight_force: bool) -> float:

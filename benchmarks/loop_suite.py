@@ -1,0 +1,189 @@
+"""The loop closure on many recordings: what it named against what the recordings hold.
+
+    python benchmarks/loop_suite.py bags/thrown_ball bags/cube_on_slab /data/other_engine \\
+        --params-file config/close_loop_cpu.yaml --out out/loop_suite
+
+Every rosbag2 directory given, or found below a given directory, that carries a
+``ground_truth.yaml`` goes through the loop closure (``mosiv close-loop``: ``loop.report``), its
+report written to ``OUT/<recording>/``. The truth's undeclared effects are what should be
+named: a library effect by its name (a tilted gravity by ``wind``, which stands for it), an
+effect outside the library (``periodic_field``) by nothing, and mask noise is not an effect to
+name. Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per recording the truth, the
+verdict, what was named with each fitted value's error against the truth, the held-out centroid
+error before and after, and the time; and a confusion table of the true undeclared effect
+against what was named, in which a wrong name is the worst cell. A recording whose loop fails
+keeps its error and the others go on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+import traceback
+from collections import Counter
+from pathlib import Path
+
+from mosiv_ros.cli import run_config
+from mosiv_ros.loop.closure import LoopConfig
+from mosiv_ros.loop.report import close_loop
+from mosiv_ros.report import jsonable
+from mosiv_ros.synth.ground_truth import read_ground_truth
+
+STANDS_FOR = {"gravity": "wind"}
+"""Truth effect types the library names otherwise."""
+NOT_NAMED = {"mask_noise"}
+"""Truth effect types that are noise, not an effect to name."""
+OUTSIDE = {"periodic_field"}
+"""Truth effect types outside the library: the right answer is no name."""
+
+
+def recordings(paths: list[Path]) -> list[Path]:
+    """Bag directories with a ground truth: the paths themselves, or found below them."""
+    found = []
+    for path in paths:
+        candidates = [path] if (path / "metadata.yaml").is_file() else sorted(
+            p.parent for p in path.rglob("metadata.yaml"))
+        found += [c for c in candidates if (c / "ground_truth.yaml").is_file()]
+    return found
+
+
+def expected(truth: dict) -> list[str]:
+    """The library names the loop should give: one per undeclared effect it can name."""
+    names = []
+    for effect in truth.get("effects", []):
+        kind = effect.get("type")
+        if effect.get("declared") or kind in NOT_NAMED or kind in OUTSIDE:
+            continue
+        names.append(STANDS_FOR.get(kind, kind))
+    return sorted(set(names))
+
+
+def value_errors(name: str, values: dict[str, float], truth: dict) -> dict[str, float]:
+    """Each fitted knob of an accepted effect against the truth (relative, or absolute in SI)."""
+    effects = {STANDS_FOR.get(e["type"], e["type"]): e for e in truth.get("effects", [])
+               if not e.get("declared")}
+    effect = effects.get(name)
+    if effect is None:
+        return {}
+    params = effect.get("params", {})
+    errors = {}
+    for label, value in values.items():
+        inside = label[label.index("[") + 1: -1] if "[" in label else ""
+        if name in ("drag", "linear_drag", "damping"):
+            true = next(iter(params.values()), {}).get(inside)
+            if true:
+                errors[label] = (value - true) / true
+        elif name == "wind":
+            vector = params.get("a") or params.get("g")
+            if vector is not None:
+                errors[label] = value - float(vector[int(inside)])
+        elif name == "floor_tilt":
+            normal = params.get("normal")
+            if normal:
+                errors[label] = value - float(normal[int(inside)]) / float(normal[2])
+        elif name == "floor_friction":
+            errors[label] = (value - float(params["friction"])) / float(params["friction"])
+        elif name == "camera_time_offset" and params.get("camera") == inside:
+            errors[label] = value - float(params["offset"])
+    return errors
+
+
+def one(bag: Path, out: Path, config, loop: LoopConfig) -> dict:
+    truth = read_ground_truth(bag)
+    entry = {"recording": bag.name, "path": str(bag), "expected": expected(truth),
+             "truth_effects": truth.get("effects", [])}
+    start = time.perf_counter()
+    try:
+        report = close_loop(bag, out / bag.name, config, loop)
+    except Exception as error:  # a recording that fails keeps its error; the others go on
+        entry.update({"error": f"{type(error).__name__}: {error}", "trace": traceback.format_exc(),
+                      "seconds": time.perf_counter() - start})
+        return entry
+    named = [effect["name"] for effect in report["accepted"]]
+    entry.update({
+        "verdict": report["verdict"], "named": named,
+        "values": {e["name"]: e["values"] for e in report["accepted"]},
+        "value_errors": {e["name"]: value_errors(e["name"], e["values"], truth) for e in report["accepted"]},
+        "held_out_before": report["before"]["centroid_error"]["held_out"],
+        "held_out_after": report["after"]["centroid_error"]["held_out"],
+        "free_flight": report.get("free_flight"),
+        "seconds": time.perf_counter() - start,
+    })
+    entry["outcome"] = outcome(entry)
+    return entry
+
+
+def outcome(entry: dict) -> str:
+    """'right', 'missed' (a present effect not named), 'wrong name' (one named that is not there)."""
+    wrong = set(entry["named"]) - set(entry["expected"])
+    if wrong:
+        return "wrong name"
+    return "right" if set(entry["named"]) == set(entry["expected"]) else "missed"
+
+
+def markdown(results: list[dict]) -> str:
+    lines = ["# Loop closure suite", "",
+             "| recording | undeclared (to name) | verdict | named | value errors | held-out before -> after (mm) "
+             "| outcome | time (s) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        if "error" in r:
+            lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | error: {r['error'][:80]} "
+                         f"| | | | | {r['seconds']:.0f} |")
+            continue
+        errors = "; ".join(f"{k} {v:+.3g}" for effect in r["value_errors"].values() for k, v in effect.items())
+        lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | {r['verdict']} | "
+                     f"{', '.join(r['named']) or 'nothing'} | {errors} | {r['held_out_before'] * 1e3:.1f} -> "
+                     f"{r['held_out_after'] * 1e3:.1f} | {r['outcome']} | {r['seconds']:.0f} |")
+    counts = Counter((", ".join(r["expected"]) or "none", ", ".join(r["named"]) or "nothing")
+                     for r in results if "error" not in r)
+    columns = sorted({named for _, named in counts})
+    lines += ["", "Confusion (rows: undeclared effects present; columns: what was named):", "",
+              "| present | " + " | ".join(columns) + " |", "| --- |" + " --- |" * len(columns)]
+    for row in sorted({present for present, _ in counts}):
+        lines.append(f"| {row} | " + " | ".join(str(counts.get((row, c), "")) for c in columns) + " |")
+    tally = Counter(r.get("outcome", "error") for r in results)
+    lines += ["", ", ".join(f"{k}: {v}" for k, v in sorted(tally.items()))]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("paths", nargs="+", type=Path, help="bag directories or directories holding bags")
+    parser.add_argument("--params-file", type=Path, default=None)
+    parser.add_argument("--device", default=None)
+    parser.add_argument("--holdout", type=float, default=0.3)
+    parser.add_argument("--top-k", type=int, default=2)
+    parser.add_argument("--max-rounds", type=int, default=3)
+    parser.add_argument("--render", action="store_true", help="also score IoU, PSNR, SSIM")
+    parser.add_argument("--out", type=Path, default=Path("out/loop_suite"))
+    args = parser.parse_args()
+    bags = recordings(args.paths)
+    if not bags:
+        print("no recording with a ground_truth.yaml found", file=sys.stderr)
+        return 2
+    config = run_config(args.params_file, args.device, holdout=args.holdout, render=args.render)
+    loop = LoopConfig(holdout=args.holdout, top_k=args.top_k, max_rounds=args.max_rounds)
+    results = []
+    for bag in bags:
+        results.append(one(bag, args.out, config, loop))
+        r = results[-1]
+        print(f"{bag.name}: expected {r['expected'] or 'none'}, "
+              + (f"error {r['error']}" if "error" in r else f"{r['verdict']}, named {r['named'] or 'nothing'}: "
+                 f"{r['outcome']} ({r['seconds']:.0f} s)"), flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    summary = {"benchmark": "loop_suite", "host": platform.node(), "python": sys.version.split()[0],
+               "params_file": str(args.params_file), "device": args.device, "results": results,
+               "wrong_names": sum(r.get("outcome") == "wrong name" for r in results),
+               "right": sum(r.get("outcome") == "right" for r in results)}
+    (args.out / "loop_suite.json").write_text(json.dumps(jsonable(summary), indent=1))
+    (args.out / "loop_suite.md").write_text(markdown(results))
+    print(markdown(results))
+    print(f"wrote {args.out / 'loop_suite.json'} and {args.out / 'loop_suite.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
