@@ -160,7 +160,14 @@ def test_an_effect_outside_the_library_is_reported_as_unexplained(tmp_path_facto
     result = _close(tmp_path_factory, "field", _scene([field]))
     assert result.rounds[0].significance > LoopConfig().significance  # there is a residual
     assert result.verdict == UNEXPLAINED and result.after.names == []
-    assert all(r.explained < LoopConfig().min_explained for r in result.rounds[0].ranking)
+    library = [r for r in result.rounds[0].ranking if r.candidate.name != "force_field"]
+    assert all(r.explained < LoopConfig().min_explained for r in library)
+    # free flight shows the force; a wind would explain most of it there, but its refit does worse
+    # held out, and so does a smooth field fitted in flight (a_y along the height, measured):
+    # both are tried, neither is accepted
+    assert result.rounds[0].flight_force
+    assert [r.candidate.name for r in result.rounds[0].ranking if r.refit is not None] == ["wind", "force_field"]
+    assert not any(r.accepted for r in result.rounds[0].ranking)
 
 
 def test_the_acceptance_threshold_pays_for_each_knob():

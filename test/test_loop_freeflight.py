@@ -13,10 +13,11 @@ import pytest
 from scipy.stats import chi2
 
 from mosiv_ros.io.scene import Scene
-from mosiv_ros.loop.freeflight import MIN_FRAMES, P_VALUE, free_flight
+from mosiv_ros.loop.freeflight import MIN_FRAMES, P_VALUE, free_flight, sparse_field
 from mosiv_ros.loop.library import Context, LinearDragCandidate, QuadraticDragCandidate, WindCandidate
 from mosiv_ros.loop.residual import Floor
 from mosiv_ros.recon.reconstruct import ObjectGeometry, ObservedFrame
+from mosiv_ros.sim.effects import FIELD_FEATURES
 
 G = np.array([0.0, 0.0, -9.81])
 DT = 1.0 / 30.0
@@ -109,3 +110,28 @@ def test_only_frames_clear_of_the_floor_and_of_other_objects_are_free():
     no_floor = _flight(_frames({1: falling}, noise=0.0), [1], floor=None)
     assert no_floor.free.all() and [(s.start, s.stop) for s in no_floor.segments] == [(0, 10)]
     assert math.isfinite(no_floor.noise[0]) and not no_floor.significant  # free fall under gravity
+
+
+def test_a_force_no_named_effect_exerts_is_described_by_a_sparse_field_of_its_own_terms():
+    # a sideways force that turns along the flight (a_y = 20 (x + 0.02) m/s^2, zero mid-flight):
+    # no uniform or drag law explains it
+    x, v = np.array([-0.2, 0.0, 0.3]), np.array([1.0, 0.0, 1.5])
+    positions, h = [x.copy()], DT / 200
+    for _ in range(11):
+        for _ in range(200):
+            a = G + np.array([0.0, 20.0 * (x[0] + 0.02), 0.0])
+            x, v = x + h * v + 0.5 * h * h * a, v + h * a
+        positions.append(x.copy())
+    path = np.array(positions)
+    flight = _flight(_frames({1: path}), [1])
+    assert flight.significant
+    ctx = _context([True])
+    for candidate in (QuadraticDragCandidate(), LinearDragCandidate(), WindCandidate()):
+        assert flight.acts(flight.fit(candidate.force_law(ctx))), candidate.name  # none explains it
+    terms, origin, fit = sparse_field(flight)
+    assert not flight.acts(fit) and len(terms) <= 3
+    assert (FIELD_FEATURES.index("x"), 1) in terms  # a_y along x
+    slope = fit.values[f"force_field.w[{3 * FIELD_FEATURES.index('x') + 1}]"]
+    assert slope == pytest.approx(20.0, rel=0.1)
+    ballistic = _path([-0.2, 0.0, 0.3], [1.0, 0.0, 1.5], lambda v: np.zeros(3), 12)
+    assert sparse_field(_flight(_frames({1: ballistic}), [1])) is None  # no force, no field

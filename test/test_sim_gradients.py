@@ -18,6 +18,7 @@ from sim_scenes import falling_ball, scene
 
 from mosiv_ros.identify.losses import chamfer
 from mosiv_ros.sim import Ground, KelvinVoigtDamping, LinearDrag, ObjectModel, QuadraticDrag
+from mosiv_ros.sim.effects import FIELD_FEATURES, ForceField
 from mosiv_ros.sim.sampling import cylinder, sphere
 
 FRAMES = (3, 6)
@@ -143,6 +144,20 @@ def test_effect_gradients_match_finite_differences(name):
         "drag.coefficient": 2.0, "damping.viscosity": 10.0, "linear_drag.coefficient": 1.0})
     sim = falling_ball("elastic", {"E": 3e4}, effects())
     check(sim, target, name, (0, 0), 0.001 * sim.params.get(name)[0, 0])
+
+
+@pytest.mark.parametrize(("term", "axis"), [("x", 0), ("vz", 2), ("|v| vx", 0)])
+def test_force_field_gradients_match_finite_differences(term, axis):
+    index = 3 * FIELD_FEATURES.index(term) + axis
+
+    def effects(value):
+        w = np.zeros(3 * len(FIELD_FEATURES))
+        w[index] = value
+        return (ForceField(w=tuple(w), origin=(0.2, 0.2, 0.14)),)
+
+    target = target_of("elastic", {"E": 3e4}, effects(-4.0))
+    sim = falling_ball("elastic", {"E": 3e4}, effects(-1.0))
+    check(sim, target, "force_field.w", (0, index), 0.01)
 
 
 def test_object_friction_gradient_matches_finite_differences():

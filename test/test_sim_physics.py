@@ -16,6 +16,7 @@ from mosiv_ros.sim import (
     ObjectModel,
     QuadraticDrag,
 )
+from mosiv_ros.sim.effects import FIELD_FEATURES, ForceField
 from mosiv_ros.sim.sampling import box, cylinder, sphere
 
 G = 9.81
@@ -300,6 +301,39 @@ def test_wind_body_force_adds_a_uniform_acceleration():
     discrete = dt * dt * n * (n + 1) / 2
     assert drift[:, 0] == pytest.approx(2.0 * discrete, abs=1e-5)
     assert drift[:, 1] == pytest.approx(-1.0 * discrete, abs=1e-5)
+
+
+def _field(**terms: tuple[float, float, float]) -> tuple[float, ...]:
+    w = np.zeros((len(FIELD_FEATURES), 3))
+    for feature, vector in terms.items():
+        w[FIELD_FEATURES.index(feature.replace("_", " "))] = vector
+    return tuple(w.ravel())
+
+
+def test_force_field_terms_act_as_the_effects_they_stand_for():
+    # a constant term is a wind, a -c v term a linear drag, a -c |v| v term a quadratic drag
+    dx = 0.05
+    ball = sphere((0.3, 0.5, 0.5), 0.06, dx / 2)
+    for named, w in ((BodyForce(a=(2.0, -1.0, 0.0)), _field(**{"1": (2.0, -1.0, 0.0)})),
+                     (LinearDrag(coefficient=2.0), _field(vx=(-2.0, 0, 0), vy=(0, -2.0, 0), vz=(0, 0, -2.0))),
+                     (QuadraticDrag(coefficient=3.0),
+                      _field(**{"|v|_vx": (-3.0, 0, 0), "|v|_vy": (0, -3.0, 0), "|v|_vz": (0, 0, -3.0)}))):
+        paths = [scene([ball], [ObjectModel("ball", "elastic")], dx=dx, lo=(0, 0, 0), hi=(1, 1, 1),
+                       frame_dt=0.05, effects=[effect], velocities=[(1.0, 0.5, 0.0)]).rollout(6)
+                 for effect in (named, ForceField(w=w, origin=(0.5, 0.5, 0.5)))]
+        np.testing.assert_allclose(paths[1], paths[0], atol=1e-6, err_msg=named.name)
+
+
+def test_a_position_term_of_the_force_field_makes_a_harmonic_oscillator():
+    # a = -k (x - origin) along x: the centroid oscillates as x0 cos(sqrt(k) t) about the origin
+    dx, k, x0 = 0.02, 100.0, 0.06
+    ball = sphere((0.5 + x0, 0.3, 0.3), 0.04, dx / 2)
+    sim = scene([ball], [ObjectModel("ball", "elastic", {"E": 1e5})], dx=dx, lo=(0, 0, 0),
+                hi=(1, 0.6, 0.6), frame_dt=0.02, effects=[ForceField(w=_field(x=(-k, 0, 0)),
+                                                                     origin=(0.5, 0.3, 0.3))])
+    x = sim.rollout(20)[:, 0, :, 0].mean(axis=1) - 0.5
+    t = np.arange(21) * 0.02
+    assert x == pytest.approx(x0 * np.cos(np.sqrt(k) * t), abs=0.002)  # 1/30 of the amplitude
 
 
 def test_moving_sphere_collider_pushes_material_along_at_its_own_velocity():

@@ -50,7 +50,10 @@ Verdicts: ``nothing to explain`` (the first residual is at the noise level), ``e
 (effects were accepted and the residual is at the noise level), ``unexplained`` (no candidate's
 signature reaches ``min_explained``, or none of the refits pays for itself: the residual is
 reported, not attributed to the nearest effect), ``partly explained`` (effects were accepted,
-but what is left is still above the noise and nothing explains it).
+but what is left is still above the noise and nothing explains it), ``unmodelled external
+force`` (free flight shows a force no named effect explains, and a smooth field of few terms
+fitted there, ``try_field``, pays for itself by the same criterion: the force is described,
+not named).
 
 What it is for: ``mosiv close-loop`` and identify_node's ``close_loop`` option.
 What it is not for: the report files (``loop.report``).
@@ -84,8 +87,8 @@ from mosiv_ros.identify.run import (
 )
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.loop.freeflight import P_VALUE, FreeFlight, combine, free_flight
-from mosiv_ros.loop.library import LIBRARY, Candidate, Context
+from mosiv_ros.loop.freeflight import P_VALUE, FreeFlight, combine, field_law, free_flight, sparse_field
+from mosiv_ros.loop.library import LIBRARY, Candidate, Context, FieldCandidate
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
 from mosiv_ros.predict.twin import Prediction
@@ -99,8 +102,8 @@ _LOG = logging.getLogger(__name__)
 AIC_GAP = 10.0
 """A force law whose free-flight AIC exceeds the best's by more than this is not refitted
 (Burnham and Anderson: essentially no support)."""
-NOTHING, EXPLAINED, UNEXPLAINED, PARTLY = ("nothing to explain", "explained", "unexplained",
-                                           "partly explained")
+NOTHING, EXPLAINED, UNEXPLAINED, PARTLY, UNMODELLED = (
+    "nothing to explain", "explained", "unexplained", "partly explained", "unmodelled external force")
 
 
 @dataclass
@@ -581,7 +584,7 @@ class LoopClosure:
             round_.ranking.sort(key=lambda r: -_weight(r, round_.flight_force))
             _LOG.info("ranking: %s", ", ".join(_describe(r) for r in round_.ranking))
             leading = self.leading(round_)
-            if leading:  # the control: the current model given a candidate's budget, no new effect
+            if leading or round_.flight_force:  # the control: a candidate's budget, no new effect
                 round_.control = self.fit(current.effects, ctx, "refit without a new effect", warm=current)
                 if round_.control.held_out_error < current.held_out_error:
                     current = round_.control
@@ -589,7 +592,13 @@ class LoopClosure:
                 self.try_candidate(ranked, current, ctx)
             accepted = [r for r in leading if r.accepted]
             if not accepted:
-                verdict = PARTLY if current.effects else UNEXPLAINED
+                field = self.try_field(round_, current, ctx) if round_.flight_force else None
+                if field is not None and field.accepted:
+                    round_.accepted = field.candidate.name
+                    current = field.refit
+                    verdict = UNMODELLED
+                else:
+                    verdict = PARTLY if current.effects else UNEXPLAINED
                 break
             best = min(accepted, key=lambda r: r.refit.held_out_error)
             round_.accepted = best.candidate.name
@@ -599,6 +608,31 @@ class LoopClosure:
         _LOG.info("loop closure: %s; effects added: %s", verdict, ", ".join(current.names) or "none")
         return LoopResult(before, current, rounds, verdict, self.window, loop,
                           time.perf_counter() - tick, self.families, self.flight)
+
+    def try_field(self, round_: Round, current: Model, ctx: Context) -> Ranked | None:
+        """Free flight's force as a smooth field, where no named effect explains it, refitted.
+
+        Its terms come from ``freeflight.sparse_field`` and stay at their free-flight values; it
+        is accepted by the same held-out criterion as a named effect, against ``current`` (the
+        round's control when that did better). Added to the round's ranking; None where no field
+        of few terms explains the flights.
+        """
+        base_law = combine(*(c.force_law(ctx) for c, _ in current.effects))
+        found = sparse_field(self.flight, base_law)
+        if found is None:
+            return None
+        terms, origin, fit = found
+        candidate = FieldCandidate(terms, origin, {label: fit.values[label]
+                                                   for label in field_law(origin, terms).labels})
+        base = self.flight.fit(base_law)
+        ranked = Ranked(candidate, math.nan, dict(candidate.values),
+                        flight=Flight(self.flight.explained(fit, base), fit.chi2,
+                                      fit.chi2 + 2 * len(terms), dict(candidate.values),
+                                      {label: fit.std[label] for label in candidate.values}))
+        _LOG.info("free flight's force as a field: %s", "; ".join(candidate.describe()))
+        self.try_candidate(ranked, current, ctx)
+        round_.ranking.append(ranked)
+        return ranked
 
     def choose_families(self) -> list[FamilyChoice]:
         """The family of every object the scene leaves open, chosen on the fitted frames.

@@ -18,9 +18,9 @@ measures that force:
 - **The test against zero.** The null model: per segment a start position and velocity, and
   the declared gravity only. Its weighted residual against the flexible curves' is a chi-square
   statistic with as many degrees of freedom as the curves have more parameters: a force acts
-  when its p-value is below ``P_VALUE`` *and* the force left (a constant acceleration fitted to
-  each segment's residual) is at least ``MIN_FORCE`` (m/s^2; a force too small to matter is not
-  worth a name even when the carving resolves it). The same test after a law's fit says whether
+  when its p-value is below ``P_VALUE`` *and* the force left (the RMS acceleration of a cubic
+  fitted to each segment's residual) is at least ``MIN_FORCE`` (m/s^2; a force too small to
+  matter is not worth a name even when the carving resolves it). The same test after a law's fit says whether
   a force beyond the law's remains.
 - **A force law.** A candidate effect's free-flight force (``ForceLaw``: acceleration per unit
   of each knob, as a function of the state) is fitted jointly with every segment's start
@@ -30,6 +30,11 @@ measures that force:
   stay in their ranges (bounded least squares). The fit gives the knobs' values and standard
   deviations, the initial velocity of each object that flies from the first frame, with the
   effect in the model, and the fraction of the null model's excess residual the law explains.
+
+- **Beyond the library.** ``sparse_field`` selects, term by term, a smooth field of few terms
+  (``sim.effects.ForceField``: constant, linear and quadratic in the position, linear in the
+  velocity, the speed, |v| v) that explains the force no named effect does: a description of
+  the force, not of its cause.
 
 What it is for: ranking the loop's candidates on evidence no material can absorb, their first
 values and the initial velocities of their refits (``loop.closure``), and the report's plot.
@@ -51,6 +56,7 @@ from mosiv_ros.identify.observations import View
 from mosiv_ros.loop.residual import Floor, observed_centroids
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.boundaries import Collider
+from mosiv_ros.sim.effects import FIELD_FEATURES, field_features
 
 MIN_FRAMES = 5
 """Fewest frames of a free-flight segment (a start position and velocity take two)."""
@@ -69,6 +75,10 @@ SUBSTEPS = 16
 """Integration substeps per frame for a law's reference trajectory."""
 REFINEMENTS = 4
 """Times a law's fit re-linearises about its own fitted trajectory."""
+MAX_FIELD_TERMS = 6
+"""Most terms of a force field that no named effect explains (``sparse_field``)."""
+FIELD_BOUND = 1.0e3
+"""Bound of a force field coefficient (the simulator's)."""
 
 Columns = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
 """columns(object index, x (n, 3), v (n, 3)) -> (n, 3, J): acceleration per unit of each knob."""
@@ -148,17 +158,23 @@ class FreeFlight:
     def force(self, fit: LawFit) -> float:
         """What the fit leaves of a force (m/s^2).
 
-        The RMS over the segments (weighted by frames) of a constant acceleration fitted to each
-        segment's residual.
+        The RMS over every free frame of the acceleration of a cubic fitted to each segment's
+        residual per axis (a force that is constant or changes steadily along the flight, as one
+        that depends on the position does), less what the centroid noise alone puts into it.
         """
-        squared, weights = [], []
+        squared, noise = [], []
         for i, s in enumerate(self.segments):
             t = self.times[s.start:s.stop] - self.times[s.start]
-            A = np.stack([np.ones_like(t), t, 0.5 * t**2], axis=1)
-            a = np.linalg.lstsq(A, self.observed[s.start:s.stop, s.object] - fit.predicted[i], rcond=None)[0][2]
-            squared.append(float(a @ a))
-            weights.append(len(t))
-        return float(np.sqrt(np.average(squared, weights=weights))) if squared else 0.0
+            degree = min(3, len(t) - 2)
+            A = np.vander(t, degree + 1, increasing=True)
+            coef = np.linalg.lstsq(A, self.observed[s.start:s.stop, s.object] - fit.predicted[i], rcond=None)[0]
+            # d^2/dt^2 of sum_j c_j t^j, as rows acting on the coefficients
+            D = np.stack([[j * (j - 1) * tk ** max(j - 2, 0) for j in range(degree + 1)] for tk in t])
+            squared.append(np.sum((D @ coef) ** 2, axis=1))
+            variance = np.einsum("ij,jk,ik->i", D, np.linalg.pinv(A.T @ A), D)
+            noise.append(3 * self.noise[s.object] ** 2 * variance)  # three axes
+        excess = np.mean(np.concatenate(squared)) - np.mean(np.concatenate(noise)) if squared else 0.0
+        return float(np.sqrt(max(excess, 0.0)))
 
     def acts(self, fit: LawFit) -> bool:
         """A force beyond the fit's acts in free flight: significant and large enough."""
@@ -311,6 +327,53 @@ def combine(*laws: ForceLaw | None) -> ForceLaw | None:
     return ForceLaw([label for law in laws for label in law.labels],
                     np.concatenate([law.lower for law in laws]),
                     np.concatenate([law.upper for law in laws]), columns)
+
+
+def field_law(origin: np.ndarray, terms: Sequence[tuple[int, int]]) -> ForceLaw:
+    """The ``sim.effects.ForceField`` terms (feature, axis) as a law, for every object alike.
+
+    Knob ``force_field.w[3 feature + axis]``: the acceleration along ``axis`` per unit of the
+    feature, the simulator's own parameter component.
+    """
+    origin = np.asarray(origin, dtype=np.float64)
+
+    def columns(k: int, x: np.ndarray, v: np.ndarray) -> np.ndarray:
+        features = field_features(x - origin, v)
+        out = np.zeros(x.shape + (len(terms),))
+        for j, (feature, axis) in enumerate(terms):
+            out[:, axis, j] = features[:, feature]
+        return out
+
+    return ForceLaw([f"force_field.w[{3 * feature + axis}]" for feature, axis in terms],
+                    np.full(len(terms), -FIELD_BOUND), np.full(len(terms), FIELD_BOUND), columns)
+
+
+def sparse_field(flight: FreeFlight, base: ForceLaw | None = None,
+                 max_terms: int = MAX_FIELD_TERMS) -> tuple[list[tuple[int, int]], np.ndarray, LawFit] | None:
+    """A force field of few terms that explains what ``base`` leaves of the free-flight force.
+
+    Forward selection over every (feature, axis) of ``FIELD_FEATURES``: at each step the term
+    that lowers the chi-square most joins, while it lowers it beyond chance (p < ``P_VALUE``),
+    until no force is left (``acts``) or ``max_terms`` have joined. Position terms are taken
+    about the free-flight centroids' mean. Returns (terms, origin, fit), or None where no such
+    field leaves the flights force-free.
+    """
+    if not flight.segments:
+        return None
+    free = flight.observed[flight.free]
+    origin = np.nanmean(free, axis=0)
+    pool = [(feature, axis) for feature in range(len(FIELD_FEATURES)) for axis in range(3)]
+    terms: list[tuple[int, int]] = []
+    fit = flight.fit(base)
+    while flight.acts(fit) and len(terms) < max_terms:
+        trials = [(flight.fit(combine(base, field_law(origin, terms + [term]))), term)
+                  for term in pool if term not in terms]
+        best, term = min(trials, key=lambda trial: trial[0].chi2)
+        if fit.chi2 - best.chi2 < chi2.ppf(1.0 - P_VALUE, 1):
+            break
+        terms.append(term)
+        fit = best
+    return (terms, origin, fit) if terms and not flight.acts(fit) else None
 
 
 def _bounding_radius(collider: Collider) -> float:

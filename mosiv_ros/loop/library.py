@@ -62,10 +62,11 @@ import numpy as np
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.observations import View
 from mosiv_ros.io.scene import DeclaredEffect, Scene
-from mosiv_ros.loop.freeflight import ForceLaw
+from mosiv_ros.loop.freeflight import FIELD_BOUND, ForceLaw, field_law
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import camera_time_offset
 from mosiv_ros.predict.twin import Prediction
+from mosiv_ros.sim.effects import FIELD_FEATURES
 
 
 @dataclass
@@ -376,6 +377,46 @@ class CameraTimeOffsetCandidate(Candidate):
                                                          ctx.frame_dt / 50)
                   for v in ctx.views}
         return {self.label(c): o for c, o in self.relative(fitted, ctx).items()}
+
+
+class FieldCandidate(Candidate):
+    """A smooth force field fitted in free flight (``freeflight.sparse_field``): not in the library.
+
+    What the loop offers when free flight shows a force that no named effect explains: the
+    field's terms at their free-flight values (fixed in its refit), as the simulator's
+    ``ForceField``. It describes the force; it does not name a cause.
+    """
+
+    name = "force_field"
+    doc = "unmodelled external force: a smooth field a(x, v) fitted in free flight, not a named effect"
+    signature = "a force in free flight that no named effect explains"
+
+    def __init__(self, terms: list[tuple[int, int]], origin: np.ndarray, values: dict[str, float]) -> None:
+        self.terms, self.origin, self.values = list(terms), np.asarray(origin, dtype=float), dict(values)
+        self.law = field_law(self.origin, self.terms)
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        return [Knob(label, 0.0, 1.0, -FIELD_BOUND, FIELD_BOUND) for label in self.law.labels]
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        w = np.zeros(3 * len(FIELD_FEATURES))
+        for label in self.law.labels:
+            w[int(label[label.index("[") + 1: -1])] = float(values.get(label, 0.0))
+        return _with_effect(scene, DeclaredEffect(self.name, {"w": w.tolist(), "origin": self.origin.tolist()}))
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return [], {}
+
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
+        return dict(self.values)
+
+    def force_law(self, ctx: Context) -> ForceLaw:
+        return self.law
+
+    def describe(self) -> list[str]:
+        """Its terms as 'a_y = 1.47 * 1 m/s^2'-style lines."""
+        return [f"a_{'xyz'[axis]} += {self.values[label]:.4g} * {FIELD_FEATURES[feature]}"
+                for (feature, axis), label in zip(self.terms, self.law.labels, strict=True)]
 
 
 LIBRARY: tuple[Candidate, ...] = (QuadraticDragCandidate(), LinearDragCandidate(), WindCandidate(),

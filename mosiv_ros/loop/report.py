@@ -38,7 +38,7 @@ from mosiv_ros.identify.problem import views_of
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.freeflight import MIN_FORCE, MIN_FRAMES, P_VALUE
-from mosiv_ros.loop.library import FloorTiltCandidate, tilt_degrees
+from mosiv_ros.loop.library import FieldCandidate, FloorTiltCandidate, tilt_degrees
 from mosiv_ros.loop.observations import Reobserver
 from mosiv_ros.pipeline import Prepared, RunConfig, prepare
 from mosiv_ros.progress import Progress
@@ -100,6 +100,9 @@ def _effect(candidate, values: dict[str, float]) -> dict:
     entry = {"name": candidate.name, "doc": candidate.doc, "values": values}
     if isinstance(candidate, FloorTiltCandidate):
         entry["tilt_deg"] = tilt_degrees(values)
+    if isinstance(candidate, FieldCandidate):
+        entry["terms"] = candidate.describe()
+        entry["origin"] = candidate.origin.tolist()
     return entry
 
 
@@ -160,6 +163,11 @@ def _markdown(report: dict, plots: list[str]) -> str:
         for effect in report["accepted"]:
             values = ", ".join(f"{k} = {v:.4g}" for k, v in effect["values"].items())
             tilt = f" (tilt {effect['tilt_deg']:.2f} deg)" if "tilt_deg" in effect else ""
+            if "terms" in effect:  # a field, not a named effect
+                lines.append(f"- **unmodelled external force** (not a named physical effect: a smooth field "
+                             f"fitted where the objects fly free, positions about {_point(effect['origin'])}): "
+                             + "; ".join(effect["terms"]))
+                continue
             lines.append(f"- **{effect['name']}** ({effect['doc']}): {values}{tilt}")
     else:
         lines.append("- none")
@@ -236,6 +244,10 @@ def _markdown(report: dict, plots: list[str]) -> str:
     lines += ["", f"Loop time {report['loop_seconds']:.0f} s.", "", "## Plots", ""]
     lines += [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+def _point(x) -> str:
+    return "(" + ", ".join(f"{v:.3f}" for v in x) + ") m"
 
 
 def _mm(value) -> str:

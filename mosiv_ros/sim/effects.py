@@ -16,7 +16,9 @@ give wrong adjoints on the tape. ``values`` maps the effect's own parameter name
 replicated arrays: read value ``j`` (layout ``[batch][object][component]``) in thread ``tid``
 with ``mosiv_ros.sim.params.param(values, j, tid)``. Built-in effects: gravity, a uniform body
 force (wind), linear and quadratic air drag, Kelvin-Voigt damping, and a spatially periodic
-force field (a position-dependent force, for testing what no uniform effect explains). Ground
+force field (a position-dependent force, for testing what no uniform effect explains), and a
+smooth polynomial force field (what the loop closure fits when no named effect explains a
+force). Ground
 friction and a
 tilted floor are the ground's parameters (``ground.friction``, ``ground.normal``; see
 ``boundaries``).
@@ -201,6 +203,74 @@ def periodic_field_kernel(
         wp.atomic_add(a, i, g * s)
 
 
+FIELD_FEATURES = ("1", "x", "y", "z", "x^2", "y^2", "z^2", "x y", "x z", "y z",
+                  "vx", "vy", "vz", "|v|", "|v| vx", "|v| vy", "|v| vz")
+"""The terms of ``ForceField``: position relative to its origin (m) and velocity (m/s)."""
+
+
+@wp.func
+def field_feature(m: int, r: wp.vec3, v: wp.vec3):
+    """Feature ``m`` of ``FIELD_FEATURES`` at relative position r and velocity v."""
+    speed = wp.length(v)
+    out = 1.0
+    if m == 1:
+        out = r[0]
+    elif m == 2:
+        out = r[1]
+    elif m == 3:
+        out = r[2]
+    elif m == 4:
+        out = r[0] * r[0]
+    elif m == 5:
+        out = r[1] * r[1]
+    elif m == 6:
+        out = r[2] * r[2]
+    elif m == 7:
+        out = r[0] * r[1]
+    elif m == 8:
+        out = r[0] * r[2]
+    elif m == 9:
+        out = r[1] * r[2]
+    elif m >= 10 and m <= 12:
+        out = v[m - 10]
+    elif m == 13:
+        out = speed
+    elif m >= 14:
+        out = speed * v[m - 14]
+    return out
+
+
+@wp.kernel
+def force_field_kernel(
+    m: wp.array(dtype=float),
+    p: wp.array(dtype=wp.vec3),
+    w: wp.array(dtype=float),
+    origin: wp.array(dtype=float),
+    per_batch: int,
+    n_nodes: int,
+    n_features: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    a: wp.array(dtype=wp.vec3),
+):
+    """A += sum_m w_m feature_m(x - origin, v) at every node with mass (x its position)."""
+    i = wp.tid()
+    mass = m[i]
+    if mass > 0.0:
+        b = i // per_batch
+        node = i % n_nodes
+        x = lo + dx * wp.vec3(float(node // (dims[1] * dims[2])), float((node // dims[2]) % dims[1]),
+                              float(node % dims[2]))
+        r = x - wp.vec3(param(origin, 3 * b, i), param(origin, 3 * b + 1, i), param(origin, 3 * b + 2, i))
+        v = divide(p[i], mass)
+        total = wp.vec3(0.0, 0.0, 0.0)
+        for f in range(n_features):
+            k = 3 * (b * n_features + f)
+            total += field_feature(f, r, v) * wp.vec3(param(w, k, i), param(w, k + 1, i), param(w, k + 2, i))
+        wp.atomic_add(a, i, total)
+
+
 # --- built-in effects ---------------------------------------------------------------------------
 
 
@@ -298,6 +368,41 @@ class PeriodicField(Effect):
         )
 
 
+class ForceField(Effect):
+    """A smooth external acceleration field: a = sum_m w_m f_m(x - origin, v), m/s^2.
+
+    ``w`` holds a 3-vector per term of ``FIELD_FEATURES`` (constant, linear and quadratic in the
+    position, linear in the velocity, the speed, |v| v), term-major. What the loop closure fits
+    when free flight shows a force that no named effect explains: a description of the force,
+    not a physical model of its cause.
+    """
+
+    name = "force_field"
+    params = (ParamSpec("w", (0.0,) * (3 * len(FIELD_FEATURES)), -1.0e3, 1.0e3, "m/s^2 per term unit",
+                        "coefficients, 3 per term", size=3 * len(FIELD_FEATURES)),
+              ParamSpec("origin", (0.0, 0.0, 0.0), -1.0e3, 1.0e3, "m", "where the position terms vanish",
+                        size=3))
+
+    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
+        wp.launch(
+            force_field_kernel,
+            dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+            inputs=[grid.m, grid.p, values["w"], values["origin"], grid.n_objects * grid.n_nodes,
+                    grid.n_nodes, len(FIELD_FEATURES), wp.vec3i(*grid.dims), wp.vec3(*grid.lo), grid.dx],
+            outputs=[grid.a],
+            device=grid.device,
+        )
+
+
+def field_features(r: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(n, M) ``FIELD_FEATURES`` at relative positions r (n, 3) and velocities v (n, 3), as the kernel."""
+    speed = np.linalg.norm(v, axis=-1)
+    x, y, z = r[..., 0], r[..., 1], r[..., 2]
+    return np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z,
+                     v[..., 0], v[..., 1], v[..., 2], speed, speed * v[..., 0], speed * v[..., 1],
+                     speed * v[..., 2]], axis=-1)
+
+
 def _uniform(grid: GridView, vector: wp.array) -> None:
     wp.launch(
         uniform_acceleration_kernel,
@@ -320,6 +425,6 @@ def _drag(grid: GridView, coefficient: wp.array, quadratic: bool) -> None:
 
 BUILTIN_EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls for cls in (Gravity, BodyForce, LinearDrag, QuadraticDrag, KelvinVoigtDamping,
-                               PeriodicField)
+                               PeriodicField, ForceField)
 }
 """Effects by name, for configuration files."""
