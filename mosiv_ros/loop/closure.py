@@ -17,7 +17,9 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    (divided by ``shape_noise``), all frames after the first. What a refit of the same model
    can absorb is projected out first: per object and axis, a constant and a term linear in
    time (the position and initial velocity are refitted). If the rest has a mean square of
-   at most ``significance`` (in units of the noise), there is nothing to explain: stop.
+   at most ``significance`` (in units of the noise) *and* free flight shows no force beyond
+   the model's (a fit can hide an effect in its materials and initial velocities; a flight
+   cannot), there is nothing to explain: stop.
 4. Rank the library's candidates (``loop.library``) by how much of that rest their signature
    explains: each knob is switched on by its probe step alone in the current twin (a sensor
    effect's: in the observations), the change of the evidence per unit of the knob is one
@@ -42,8 +44,13 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    (defaults 0.8 and 0.1: a one-knob effect must cut the held-out error by 28 %, a two-knob one
    by 35 %), E_current the better of the current model and its control; equivalently its
    penalised score ln E + penalty * p beats the current model's by ln(1 / margin). Of several
-   accepted, the lowest held-out error wins. Each model's AIC and BIC on the fitted frames
-   (``information``) are reported beside.
+   accepted, the lowest held-out error wins. Where free flight shows the force and the
+   candidate's law explains it there, that is the evidence for the effect, and the refit need
+   only predict the held-out frames no worse than the material-only models do (E_new at most
+   the larger of the current model's and its control's): a fit that already hides an effect in
+   its materials and initial velocities can predict frames where the effect no longer acts (an
+   object come to rest) as well as one with it. Of several such, free flight's AIC picks. Each
+   model's AIC and BIC on the fitted frames (``information``) are reported beside.
 7. Repeat from 3 with the accepted effect in the model, at most ``max_rounds`` times.
 
 Verdicts: ``nothing to explain`` (the first residual is at the noise level), ``explained``
@@ -489,6 +496,12 @@ class LoopClosure:
                     for i, k in enumerate(knobs)}
         return Ranked(candidate, explained, estimate)
 
+    def flight_force(self, model: Model, ctx: Context) -> bool:
+        """Free flight shows a force beyond the laws of the model's effects."""
+        if self.flight is None or not self.flight.segments:
+            return False
+        return self.flight.acts(self.flight.fit(combine(*(c.force_law(ctx) for c, _ in model.effects))))
+
     def weigh_flight(self, ranking: list[Ranked], current: Model, ctx: Context) -> bool:
         """Annotate ``ranking`` with the free-flight evidence; True when a force acts there.
 
@@ -571,12 +584,13 @@ class LoopClosure:
             significance = self.significance(current)
             round_ = Round(significance)
             rounds.append(round_)
-            _LOG.info("residual: mean square %.3g noise units (threshold %.3g)", significance,
-                      loop.significance)
-            if significance <= loop.significance:
+            ctx = self.context(current)
+            flying = self.flight_force(current, ctx)
+            _LOG.info("residual: mean square %.3g noise units (threshold %.3g)%s", significance,
+                      loop.significance, "; free flight shows a force the model lacks" if flying else "")
+            if significance <= loop.significance and not flying:  # a fit can hide an effect, a flight cannot
                 verdict = EXPLAINED if current.effects else NOTHING
                 break
-            ctx = self.context(current)
             have = set(current.names)
             candidates = [c for c in self.library if c.name not in have and c.applicable(ctx)]
             round_.ranking = [self.rank(c, current, ctx) for c in candidates]
@@ -584,15 +598,17 @@ class LoopClosure:
             round_.ranking.sort(key=lambda r: -_weight(r, round_.flight_force))
             _LOG.info("ranking: %s", ", ".join(_describe(r) for r in round_.ranking))
             leading = self.leading(round_)
+            spread = current.held_out_error
             if leading or round_.flight_force:  # the control: a candidate's budget, no new effect
                 round_.control = self.fit(current.effects, ctx, "refit without a new effect", warm=current)
+                spread = max(spread, round_.control.held_out_error)
                 if round_.control.held_out_error < current.held_out_error:
                     current = round_.control
             for ranked in leading:
-                self.try_candidate(ranked, current, ctx)
+                self.try_candidate(ranked, current, ctx, spread if round_.flight_force else None)
             accepted = [r for r in leading if r.accepted]
             if not accepted:
-                field = self.try_field(round_, current, ctx) if round_.flight_force else None
+                field = self.try_field(round_, current, ctx, spread) if round_.flight_force else None
                 if field is not None and field.accepted:
                     round_.accepted = field.candidate.name
                     current = field.refit
@@ -600,16 +616,19 @@ class LoopClosure:
                 else:
                     verdict = PARTLY if current.effects else UNEXPLAINED
                 break
-            best = min(accepted, key=lambda r: r.refit.held_out_error)
+            # where free flight decides, its evidence picks (held-out errors this close are noise)
+            best = min(accepted, key=lambda r: r.flight.aic if round_.flight_force else r.refit.held_out_error)
             round_.accepted = best.candidate.name
             current = best.refit
         else:
-            verdict = EXPLAINED if self.significance(current) <= loop.significance else PARTLY
+            settled = (self.significance(current) <= loop.significance
+                       and not self.flight_force(current, self.context(current)))
+            verdict = EXPLAINED if settled else PARTLY
         _LOG.info("loop closure: %s; effects added: %s", verdict, ", ".join(current.names) or "none")
         return LoopResult(before, current, rounds, verdict, self.window, loop,
                           time.perf_counter() - tick, self.families, self.flight)
 
-    def try_field(self, round_: Round, current: Model, ctx: Context) -> Ranked | None:
+    def try_field(self, round_: Round, current: Model, ctx: Context, spread: float) -> Ranked | None:
         """Free flight's force as a smooth field, where no named effect explains it, refitted.
 
         Its terms come from ``freeflight.sparse_field`` and stay at their free-flight values; it
@@ -630,7 +649,7 @@ class LoopClosure:
                                       fit.chi2 + 2 * len(terms), dict(candidate.values),
                                       {label: fit.std[label] for label in candidate.values}))
         _LOG.info("free flight's force as a field: %s", "; ".join(candidate.describe()))
-        self.try_candidate(ranked, current, ctx)
+        self.try_candidate(ranked, current, ctx, spread)
         round_.ranking.append(ranked)
         return ranked
 
@@ -644,7 +663,13 @@ class LoopClosure:
                                problem_options(self.identify, self.views), self.views,
                                self.gripper_poses, phase_progress(self.progress, "family"))
 
-    def try_candidate(self, ranked: Ranked, current: Model, ctx: Context) -> None:
+    def try_candidate(self, ranked: Ranked, current: Model, ctx: Context, spread: float | None = None) -> None:
+        """Refit with the candidate and judge it (see the module docstring, step 6).
+
+        ``spread``: where free flight shows a force this candidate's law explains, the largest
+        held-out error of the material-only models (the current one and its control); the
+        refit need only stay within it, the evidence for the effect being free flight's.
+        """
         candidate = ranked.candidate
         effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
         try:
@@ -652,10 +677,20 @@ class LoopClosure:
         except (SimulationError, ValueError) as error:
             ranked.note = f"refit failed: {error}"
             return
-        ranked.threshold = self.loop.threshold(len(ranked.estimate))
-        ranked.ratio = ranked.refit.held_out_error / max(current.held_out_error, 1e-12)
-        ranked.accepted = bool(ranked.ratio <= ranked.threshold)
-        ranked.note = (f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})")
+        baseline = max(current.held_out_error, 1e-12)
+        ranked.ratio = ranked.refit.held_out_error / baseline
+        evidenced = (spread is not None and ranked.flight is not None
+                     and ranked.flight.explained >= self.loop.min_explained)
+        if evidenced:
+            ranked.threshold = spread / baseline
+            ranked.accepted = bool(ranked.ratio <= ranked.threshold)
+            ranked.note = (f"free flight shows it (explains {ranked.flight.explained:.2f} there); held-out "
+                           f"error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f}: no worse than "
+                           "a material-only refit)")
+        else:
+            ranked.threshold = self.loop.threshold(len(ranked.estimate))
+            ranked.accepted = bool(ranked.ratio <= ranked.threshold)
+            ranked.note = f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})"
         worse = self.flight_contradiction(current, ranked, ctx)
         if worse is not None:
             ranked.accepted = False
