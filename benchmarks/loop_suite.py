@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import platform
 import sys
 import time
@@ -160,6 +161,7 @@ def main() -> int:
     parser.add_argument("--render", action="store_true", help="also score IoU, PSNR, SSIM")
     parser.add_argument("--out", type=Path, default=Path("out/loop_suite"))
     args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     bags = recordings(args.paths)
     if not bags:
         print("no recording with a ground_truth.yaml found", file=sys.stderr)

@@ -198,14 +198,14 @@ def _params_file(tmp_path, fast_params):
 
 
 @pytest.mark.slow
-def test_mosiv_close_loop_writes_the_report(tmp_path, fast_params, drag_bag):
+def test_mosiv_close_loop_writes_the_report_and_a_rerun_resumes_every_fit(tmp_path, fast_params, drag_bag):
     # the command end to end on the drag recording, with the test's fit settings
     out = tmp_path / "report"
-    result = subprocess.run([sys.executable, "-m", "mosiv_ros", "close-loop", str(drag_bag), "--out",
-                             str(out), "--params-file", str(_params_file(tmp_path, fast_params)),
-                             "--no-render"],
-                            capture_output=True, text=True, timeout=600)
+    command = [sys.executable, "-m", "mosiv_ros", "close-loop", str(drag_bag), "--out", str(out),
+               "--params-file", str(_params_file(tmp_path, fast_params)), "--no-render"]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
+    assert "resuming identification" not in result.stderr
     assert "verdict: explained" in result.stdout and "accepted drag" in result.stdout
     report = json.loads((out / "close_loop.json").read_text())
     assert [e["name"] for e in report["accepted"]] == ["drag"]
@@ -215,6 +215,16 @@ def test_mosiv_close_loop_writes_the_report(tmp_path, fast_params, drag_bag):
                  "jelly_residual.png", "ranking.png"):
         assert (out / name).stat().st_size > 100
     assert "drag" in (out / "closed_scene.yaml").read_text()
+    # every fit checkpointed in a folder of its own; the same command again resumes each one
+    # where it ended (no search, no iteration) and reaches the same report
+    fits = sorted(p.name for p in (out / "checkpoints").iterdir())
+    assert {"round0-declared", "round1-control", "round1-drag"} <= set(fits)
+    again = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stderr.count("resuming identification") == len(fits)
+    rerun = json.loads((out / "close_loop.json").read_text())
+    assert rerun["accepted"] == report["accepted"]
+    assert rerun["after"]["centroid_error"] == report["after"]["centroid_error"]
 
 
 @pytest.mark.slow

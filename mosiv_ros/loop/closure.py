@@ -74,6 +74,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import lsq_linear
@@ -94,7 +95,15 @@ from mosiv_ros.identify.run import (
 )
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.loop.freeflight import P_VALUE, FreeFlight, combine, field_law, free_flight, sparse_field
+from mosiv_ros.loop.freeflight import (
+    P_VALUE,
+    ForceLaw,
+    FreeFlight,
+    combine,
+    field_law,
+    free_flight,
+    sparse_field,
+)
 from mosiv_ros.loop.library import LIBRARY, Candidate, Context, FieldCandidate
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
@@ -245,6 +254,10 @@ class LoopClosure:
     ``reobserver`` (stages 1-2 of the recording, remade on demand) lets the library's sensor
     effects correct the observations; without it they are not tried.
 
+    With ``identify.checkpoint_dir`` set, every fit of the loop checkpoints in a folder of its
+    own under it (``round1-drag``, ...), so that a rerun of the same loop on the same recording
+    resumes each fit where it stopped and takes the finished ones as they ended.
+
     The frames from ``stamp_ns`` of the ``window``-th given frame on are held out; a model
     whose observations were remade (a sensor effect) is scored on the same stamps.
     """
@@ -268,6 +281,7 @@ class LoopClosure:
         self.library, self.progress = list(library), progress
         self.families: list[FamilyChoice] = []
         self.flight: FreeFlight | None = None
+        self.round = 0
         self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
                       if scene.ground is not None else None)
 
@@ -314,16 +328,19 @@ class LoopClosure:
         return problem
 
     def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
-            label: str, velocity: np.ndarray | None = None, warm: Model | None = None) -> Model:
+            label: str, key: str, velocity: np.ndarray | None = None, warm: Model | None = None) -> Model:
         """Fit the declared model plus ``effects`` (knobs at their initial values).
 
         The objects' parameters start afresh (at the simulator's defaults), as in the first fit:
         a fit without the missing effect distorts them, and its values are a poor start.
         ``velocity`` (K, 3; NaN rows: estimate from the first frames) starts the initial
         velocities. ``warm``: a fit of the same model to continue from (no search), the control
-        of an acceptance.
+        of an acceptance. ``key``: the fit's checkpoint folder within the round's.
         """
         tick = time.perf_counter()
+        identify = self.identify
+        if identify.checkpoint_dir:
+            identify = replace(identify, checkpoint_dir=str(Path(identify.checkpoint_dir) / f"round{self.round}-{key}"))
         scene = self.scene
         for candidate, values in effects:
             scene = candidate.declare(scene, values, ctx)
@@ -333,7 +350,7 @@ class LoopClosure:
         if warm is not None:
             result = warm.identification.result
             problem.warm_start = (result.u, result.velocity)
-        identification = fit_problem(problem, self.identify,
+        identification = fit_problem(problem, identify,
                                      phase_progress(self.progress, label),
                                      self.fitted_frames(observations))
         with_family_scores(identification.estimates, self.families)
@@ -500,7 +517,7 @@ class LoopClosure:
         """Free flight shows a force beyond the laws of the model's effects."""
         if self.flight is None or not self.flight.segments:
             return False
-        return self.flight.acts(self.flight.fit(combine(*(c.force_law(ctx) for c, _ in model.effects))))
+        return self.flight.acts(self.flight.fit(_laws(model.effects, ctx)))
 
     def weigh_flight(self, ranking: list[Ranked], current: Model, ctx: Context) -> bool:
         """Annotate ``ranking`` with the free-flight evidence; True when a force acts there.
@@ -509,13 +526,13 @@ class LoopClosure:
         the share of it its force law explains, starts its refit from the knob values and
         initial velocities free flight gives it; a sensor effect by the share its corrected
         observations remove (a badly timed camera bends the carved centroids too); any other
-        candidate cannot explain it. Where none acts, a force-law candidate whose first estimate would have
-        shown in free flight is ruled out.
+        candidate cannot explain it. Where none acts, a force-law candidate whose first estimate
+        would have shown in free flight is ruled out.
         """
         flight = self.flight
         if flight is None or not flight.segments:
             return False
-        base_law = combine(*(c.force_law(ctx) for c, _ in current.effects))
+        base_law = _laws(current.effects, ctx)
         base = flight.fit(base_law)
         acting = flight.acts(base)
         for ranked in ranking:
@@ -571,7 +588,7 @@ class LoopClosure:
         tick = time.perf_counter()
         loop = self.loop
         self.families = self.choose_families()
-        before = current = self.fit([], None, "fit declared model")
+        before = current = self.fit([], None, "fit declared model", "declared")
         self.flight = self.free_flight(before)
         if self.flight.segments:
             _LOG.info("free flight: %d frames in %d segments; external force %.2f m/s^2 (p = %.2g): %s",
@@ -580,7 +597,8 @@ class LoopClosure:
                       "significant" if self.flight.significant else "not significant")
         rounds: list[Round] = []
         verdict = ""
-        for _ in range(loop.max_rounds):
+        for index in range(1, loop.max_rounds + 1):
+            self.round = index  # names the round's checkpoint folders
             significance = self.significance(current)
             round_ = Round(significance)
             rounds.append(round_)
@@ -600,7 +618,8 @@ class LoopClosure:
             leading = self.leading(round_)
             spread = current.held_out_error
             if leading or round_.flight_force:  # the control: a candidate's budget, no new effect
-                round_.control = self.fit(current.effects, ctx, "refit without a new effect", warm=current)
+                round_.control = self.fit(current.effects, ctx, "refit without a new effect", "control",
+                                          warm=current)
                 spread = max(spread, round_.control.held_out_error)
                 if round_.control.held_out_error < current.held_out_error:
                     current = round_.control
@@ -636,7 +655,7 @@ class LoopClosure:
         round's control when that did better). Added to the round's ranking; None where no field
         of few terms explains the flights.
         """
-        base_law = combine(*(c.force_law(ctx) for c, _ in current.effects))
+        base_law = _laws(current.effects, ctx)
         found = sparse_field(self.flight, base_law)
         if found is None:
             return None
@@ -673,7 +692,7 @@ class LoopClosure:
         candidate = ranked.candidate
         effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
         try:
-            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}", ranked.velocity)
+            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}", candidate.name, ranked.velocity)
         except (SimulationError, ValueError) as error:
             ranked.note = f"refit failed: {error}"
             return
@@ -706,10 +725,15 @@ class LoopClosure:
         law = ranked.candidate.force_law(ctx)
         if law is None or self.flight is None or not self.flight.segments or ranked.refit is None:
             return None
-        joint = combine(*(c.force_law(ctx) for c, _ in current.effects), law)
+        joint = combine(_laws(current.effects, ctx), law)
         values = {k: v for _, fitted in ranked.refit.effects for k, v in fitted.items()}
         worse = self.flight.chi2_at(joint, values) - self.flight.fit(joint).chi2
         return worse if worse > chi2.ppf(1.0 - P_VALUE, len(joint.labels)) else None
+
+
+def _laws(effects: Sequence[tuple[Candidate, dict[str, float]]], ctx: Context) -> ForceLaw | None:
+    """The free-flight laws of a model's effects, as one law (None: none has one)."""
+    return combine(*(c.force_law(ctx) for c, _ in effects))
 
 
 def _weight(ranked: Ranked, flight_force: bool) -> float:

@@ -51,12 +51,19 @@ _LOG = logging.getLogger(__name__)
 def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None,
                loop: LoopConfig | None = None,
                progress: Progress | None = None) -> dict:
-    """Run the loop closure on a recording and write its report into ``out``; return the JSON."""
+    """Run the loop closure on a recording and write its report into ``out``; return the JSON.
+
+    Its fits checkpoint under ``identify.checkpoint_dir``, by default ``out/checkpoints``: the
+    same command run again resumes an interrupted loop.
+    """
     config = config or RunConfig()
     loop = loop or LoopConfig(holdout=config.holdout)
+    identify = config.identify
+    if not identify.checkpoint_dir:
+        identify = replace(identify, checkpoint_dir=str(Path(out) / "checkpoints"))
     prepared = prepare(bag, config, progress)
     closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene,
-                          config.identify, loop, views_of(prepared.recording),
+                          identify, loop, views_of(prepared.recording),
                           prepared.recording.gripper_poses, progress=progress,
                           reobserver=Reobserver(prepared.recording, config))
     result = closure.run()
