@@ -104,7 +104,7 @@ from mosiv_ros.loop.freeflight import (
     free_flight,
     sparse_field,
 )
-from mosiv_ros.loop.library import LIBRARY, Candidate, Context, FieldCandidate
+from mosiv_ros.loop.library import LIBRARY, Candidate, Context, FieldCandidate, HeldCandidate
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.loop.residual import Floor, ResidualAnalysis, analyse
 from mosiv_ros.predict.twin import Prediction
@@ -715,6 +715,30 @@ class LoopClosure:
             ranked.accepted = False
             ranked.note += (f"; free flight rules out its fitted value (chi-square +{worse:.0f}): "
                             "the refit bought its fit elsewhere")
+        if (evidenced and not ranked.accepted and not isinstance(candidate, (HeldCandidate, FieldCandidate))
+                and all(math.isfinite(s) for s in ranked.flight.std.values())):
+            self.try_held(ranked, current, ctx)
+
+    def try_held(self, ranked: Ranked, current: Model, ctx: Context) -> None:
+        """Refit with the candidate held at free flight's values; it replaces the free one if accepted.
+
+        Only for a candidate free flight shows, whose every knob free flight measures (each
+        object it acts on flies free); judged by the same threshold as the free refit.
+        """
+        held = HeldCandidate(ranked.candidate, ranked.flight.values)
+        effects = [(c, values) for c, values in current.effects] + [(held, held.values)]
+        try:
+            refit = self.fit(effects, ctx, f"fit with {held.name} held at free flight's values",
+                             f"{held.name}-held", ranked.velocity)
+        except (SimulationError, ValueError) as error:
+            ranked.note += f"; held at free flight's values, its refit failed: {error}"
+            return
+        ratio = refit.held_out_error / max(current.held_out_error, 1e-12)
+        accepted = bool(ratio <= ranked.threshold)
+        ranked.note += (f"; held at free flight's values: held-out error x{ratio:.2f} "
+                        f"({'accepted' if accepted else 'not accepted either'})")
+        if accepted:
+            ranked.candidate, ranked.refit, ranked.ratio, ranked.accepted = held, refit, ratio, True
 
     def flight_contradiction(self, current: Model, ranked: Ranked, ctx: Context) -> float | None:
         """How much worse (chi-square) free flight fits a refit's knob values than its best.

@@ -77,6 +77,9 @@ REFINEMENTS = 4
 """Times a law's fit re-linearises about its own fitted trajectory."""
 MAX_FIELD_TERMS = 6
 """Most terms of a force field that no named effect explains (``sparse_field``)."""
+TIE = 2.0
+"""Chi-square difference below which two field terms of one parameter each are equally good
+(Akaike's criterion cannot tell them apart)."""
 FIELD_BOUND = 1.0e3
 """Bound of a force field coefficient (the simulator's)."""
 
@@ -109,6 +112,7 @@ class LawFit:
 
     values: dict[str, float]
     std: dict[str, float]
+    """Standard deviations; inf for a knob that acts on no free frame (an object never free)."""
     chi2: float
     """Weighted residual (noise units squared)."""
     initial_velocity: dict[int, np.ndarray] = field(default_factory=dict)
@@ -193,6 +197,7 @@ class FreeFlight:
         residual = targets - columns @ x
         chi_sq = float(residual @ residual)
         std = np.sqrt(np.clip(np.diag(np.linalg.pinv(columns.T @ columns))[:J], 0.0, None))
+        std[np.linalg.norm(columns[:, :J], axis=0) == 0.0] = np.inf  # a knob no free frame shows
         predicted, velocity = {}, {}
         for i, s in enumerate(self.segments):
             t = self.times[s.start:s.stop] - self.times[s.start]
@@ -354,9 +359,11 @@ def sparse_field(flight: FreeFlight, base: ForceLaw | None = None,
 
     Forward selection over every (feature, axis) of ``FIELD_FEATURES``: at each step the term
     that lowers the chi-square most joins, while it lowers it beyond chance (p < ``P_VALUE``),
-    until no force is left (``acts``) or ``max_terms`` have joined. Position terms are taken
-    about the free-flight centroids' mean. Returns (terms, origin, fit), or None where no such
-    field leaves the flights force-free.
+    until no force is left (``acts``) or ``max_terms`` have joined. Terms the data cannot tell
+    apart (chi-square within ``TIE`` of the best, as a constant and |v| are over a flight at
+    nearly constant speed) go to the simplest, the first in ``FIELD_FEATURES``. Position terms
+    are taken about the free-flight centroids' mean. Returns (terms, origin, fit), or None where
+    no such field leaves the flights force-free.
     """
     if not flight.segments:
         return None
@@ -368,7 +375,8 @@ def sparse_field(flight: FreeFlight, base: ForceLaw | None = None,
     while flight.acts(fit) and len(terms) < max_terms:
         trials = [(flight.fit(combine(base, field_law(origin, terms + [term]))), term)
                   for term in pool if term not in terms]
-        best, term = min(trials, key=lambda trial: trial[0].chi2)
+        least = min(trial[0].chi2 for trial in trials)
+        best, term = min((t for t in trials if t[0].chi2 <= least + TIE), key=lambda trial: trial[1])
         if fit.chi2 - best.chi2 < chi2.ppf(1.0 - P_VALUE, 1):
             break
         terms.append(term)

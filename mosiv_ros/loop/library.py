@@ -379,6 +379,42 @@ class CameraTimeOffsetCandidate(Candidate):
         return {self.label(c): o for c, o in self.relative(fitted, ctx).items()}
 
 
+class HeldCandidate(Candidate):
+    """A named effect held at the values free flight measured: its refit fits the materials only.
+
+    Where free flight shows a force a named effect's law explains, but the refit with the
+    effect's knobs free does not predict the held-out frames (a small budget can trade the
+    knobs against the materials), the loop tries the effect again with its knobs held at free
+    flight's values, which no material can absorb. It names the same effect.
+    """
+
+    def __init__(self, inner: Candidate, values: dict[str, float]) -> None:
+        self.inner, self.values = inner, dict(values)
+        self.name, self.signature = inner.name, inner.signature
+        self.doc = f"{inner.doc} (held at the values free flight measured)"
+
+    def applicable(self, ctx: Context) -> bool:
+        return self.inner.applicable(ctx)
+
+    def knobs(self, ctx: Context) -> list[Knob]:
+        return self.inner.knobs(ctx)
+
+    def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:
+        return self.inner.declare(scene, values, ctx)
+
+    def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
+        return [], {}
+
+    def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
+        return dict(self.values)
+
+    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
+        return self.inner.observe(values, ctx)
+
+    def force_law(self, ctx: Context) -> ForceLaw | None:
+        return self.inner.force_law(ctx)
+
+
 class FieldCandidate(Candidate):
     """A smooth force field fitted in free flight (``freeflight.sparse_field``): not in the library.
 
