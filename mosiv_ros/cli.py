@@ -235,16 +235,15 @@ def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
     from mosiv_ros.graph import Graph, NodeSpec
-    from mosiv_ros.identify.estimates import Estimates
+    from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
     from mosiv_ros.io.bag import list_topics
+    from mosiv_ros.io.files import OutputDir
     from mosiv_ros.pipeline import evaluate, fit_window, prepare
 
     start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    estimates_file = out / "estimates.yaml"
-    estimates_file.unlink(missing_ok=True)
+    out = OutputDir(Path(args.out).resolve(), f"mosiv graph {bag}")  # before any work
+    estimates_file = out.claim(ESTIMATES_FILE)  # identify_node writes it; an older run's files go
     images = min(info.message_count for topic, info in list_topics(bag).items()
                  if topic.endswith("/color/image_raw"))
     window = fit_window(images, args.holdout)
@@ -271,7 +270,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     estimates = Estimates.read(estimates_file)
     result = evaluate(prepare(bag, config), estimates, estimates.frames, out, config)
     _print_summary(result)
-    print(f"report: {out / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
+    print(f"report: {out.path / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
     return 0 if code == 0 and frame_sets else 1
 
 

@@ -161,7 +161,7 @@ def test_the_same_seed_records_the_same_images(noisy, tmp_path):
 def test_record_command_refuses_to_overwrite_and_names_bad_fields(tmp_path, synth_pair_bag, capsys):
     scene = write_scene(tmp_path, PAIR)
     assert main(["record", str(scene), str(synth_pair_bag)]) == 2
-    assert "cannot create bag" in capsys.readouterr().err
+    assert f"output {synth_pair_bag}: already exists" in capsys.readouterr().err
     bad = pair_scene(duration=-1.0)
     assert main(["record", str(write_scene(tmp_path, bad, "bad.yaml")), str(tmp_path / "out")]) == 2
     assert "duration: must be positive, got -1.0" in capsys.readouterr().err

@@ -1,10 +1,10 @@
 """Error types of the ROS-free I/O layer.
 
-One documented family: everything the bag, message and scene code raises on bad input is a
-``MosivIOError``. What it is for: telling a user which file, topic or field is wrong and how.
+One documented family: everything the bag, message, scene and output-file code raises on bad
+input is a ``MosivIOError``. What it is for: telling a user which file, topic or field is wrong and how.
 What it is not for: programming errors (wrong argument types in our own code stay TypeError etc.).
 
-All three error types survive pickling (the process runner may move them between processes).
+Every error type here survives pickling (the process runner may move them between processes).
 """
 
 from __future__ import annotations
@@ -68,3 +68,23 @@ class SceneError(MosivIOError, ValueError):
 
     def __reduce__(self) -> tuple[type[SceneError], tuple[str, str, str | None]]:
         return (type(self), (self.field, self.problem, self.source))
+
+
+class OutputError(MosivIOError):
+    """An output location cannot take the files: not a directory, not creatable, not writable.
+
+    Attributes:
+        path: the output path at fault.
+        problem: what is wrong, in words.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], problem: str) -> None:
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(str(self))
+
+    def __str__(self) -> str:
+        return f"output {self.path}: {self.problem}"
+
+    def __reduce__(self) -> tuple[type[OutputError], tuple[Path, str]]:
+        return (type(self), (self.path, self.problem))

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.bag import write_recording
-from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.files import check_new_path
 from mosiv_ros.io.recording import Camera, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.progress import Progress
@@ -57,11 +57,11 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
            progress: Progress | None = None) -> Path:
     """Record ``spec`` as a new bag directory ``out`` (must not exist) with its sidecars.
 
-    Raises SceneError for a bad scene, ``mosiv_ros.sim`` errors when the simulation cannot run or
-    diverges, BagError when the bag cannot be written.
+    Raises OutputError when ``out`` exists or cannot be created (checked first), SceneError for a
+    bad scene, ``mosiv_ros.sim`` errors when the simulation cannot run or diverges, BagError when
+    the bag cannot be written.
     """
-    if Path(out).exists():  # before minutes of simulation, not after
-        raise BagError(out, None, "cannot create bag: the path already exists")
+    check_new_path(out)  # before minutes of simulation, not after
     layout = lay_out(spec)
     offsets = camera_offsets(spec.effects)
     extra = math.ceil(max([0.0, *offsets.values()]) * spec.cameras.fps)  # frames a late camera needs
