@@ -430,6 +430,46 @@ def test_calibration_changing_over_time_raises_bag_error(small_bag, tmp_path, st
         read_recording(bag)
 
 
+def _calibration(field: str, value: float):
+    """A change of one CameraInfo calibration value: ``k[i]`` or ``d[i]``."""
+    name, index = field[0], int(field[2:-1])
+
+    def change(msg):
+        values = getattr(msg, name).copy()
+        values[index] = value
+        setattr(msg, name, values)
+        return msg
+
+    return change
+
+
+BAD_CALIBRATIONS = [  # (CameraInfo field, value, where it shows, what the error says)
+    ("k[0]", 0.0, "fx", "must be a positive, finite number of pixels, got 0.0"),
+    ("k[0]", float("nan"), "fx", "must be a positive, finite number of pixels, got nan"),
+    ("k[4]", -300.0, "fy", "must be a positive, finite number of pixels, got -300.0"),
+    ("k[2]", 40.0, "cx", "principal point"),
+    ("k[5]", float("inf"), "cy", "principal point"),
+    ("d[1]", float("nan"), "distortion", "must be finite"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "name", "problem"), BAD_CALIBRATIONS,
+                         ids=[f"{f}={v}" for f, v, _, _ in BAD_CALIBRATIONS])
+@pytest.mark.parametrize("every_stamp", [True, False], ids=["every stamp", "one stamp"])
+def test_bad_calibration_raises_bag_error_naming_camera_and_field(small_bag, tmp_path, stamps, capsys, field,
+                                                                    value, name, problem, every_stamp):
+    stamp = None if every_stamp else stamps[2]
+    bag = rewrite(small_bag, tmp_path / "bag", at("/cam1/color/camera_info", stamp, _calibration(field, value)))
+    with pytest.raises(BagError) as info:
+        read_recording(bag)
+    assert info.value.topic == "/cam1/color/camera_info"  # the camera
+    assert f"CameraInfo: {field} ({name})" in info.value.problem and problem in info.value.problem
+    assert "calibration changes" not in info.value.problem
+    assert main(["info", str(bag)]) == 2
+    assert f"topic /cam1/color/camera_info: message at stamp {stamp or stamps[0]}: CameraInfo: {field} ({name})" \
+        in capsys.readouterr().err
+
+
 def test_image_without_mask_of_the_same_stamp_raises_bag_error(small_bag, tmp_path, stamps):
     bag = rewrite(small_bag, tmp_path / "bag", at("/cam0/instance_mask", stamps[1], lambda m: None))
     with pytest.raises(BagError) as info:

@@ -110,6 +110,8 @@ BAD = [
     ("cameras", {"placement": "ring", "count": 3, "radius": 0.5, "height": 0.3, "look_at": [5.0, 5.0, 0.0],
                  "resolution": [32, 24], "fps": 10}, "cameras", "camera 'cam0' sees none of the objects", NO_EFFECTS),
     ("cameras.resolution", [4, 4], "cameras.resolution", "at least 8 x 8"),
+    ("cameras", {**{k: v for k, v in PAIR["cameras"].items() if k != "horizontal_fov"}, "fx": 60.0, "cx": 70.0},
+     "cameras", "k[2] (cx) = 70.0: the principal point must lie inside the 64x48 image"),
     ("gripper.trajectory.0.position", [0.03, 0.0, 0.03], "gripper.trajectory", "overlaps an object at t = 0"),
     ("gripper.trajectory.1.t", 0.0, "gripper.trajectory[1].t", "keyframe times must increase"),
     ("gripper.shape", "cone", "gripper.shape", "unknown value 'cone'"),

@@ -407,10 +407,13 @@ def _cameras(f: Fields) -> CameraSpec:
     if width < 8 or height_px < 8:
         raise SceneError(f.path("resolution"), f"must be at least 8 x 8 pixels, got {width} x {height_px}")
     if f.has("fx"):
-        intrinsics = rig.pinhole(width, height_px, fx=f.number("fx", positive=True),
-                                 fy=f.number("fy", positive=True) if f.has("fy") else None,
-                                 cx=f.number("cx") if f.has("cx") else None,
-                                 cy=f.number("cy") if f.has("cy") else None)
+        try:
+            intrinsics = rig.pinhole(width, height_px, fx=f.number("fx", positive=True),
+                                     fy=f.number("fy", positive=True) if f.has("fy") else None,
+                                     cx=f.number("cx") if f.has("cx") else None,
+                                     cy=f.number("cy") if f.has("cy") else None)
+        except ValueError as exc:  # the calibration check of CameraIntrinsics (k[2] is cx, ...)
+            raise SceneError(f.where, str(exc)) from None
     else:
         fov = f.number("horizontal_fov", 0.9, lower=0.05, upper=3.0)
         intrinsics = rig.pinhole(width, height_px, horizontal_fov=fov)
