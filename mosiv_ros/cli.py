@@ -49,10 +49,19 @@ def cmd_params(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from mosiv_ros.io.bag import read_recording
+    from mosiv_ros.io.bag import chunk_checksums, read_recording
 
     recording = read_recording(args.bag)
     print(f"{args.bag}:")
+    checksums = chunk_checksums(args.bag)
+    if checksums is None:
+        print("  storage: sqlite3 (no chunk checksums)")
+    else:
+        with_crc, chunks = checksums
+        carried = ("all with a checksum (CRC32)" if with_crc == chunks else
+                   "none with a checksum (a corrupt chunk may read as data)" if with_crc == 0 else
+                   f"{with_crc} with a checksum (CRC32)")
+        print(f"  storage: mcap, {chunks} chunk{'' if chunks == 1 else 's'}, {carried}")
     for name, camera in sorted(recording.cameras.items()):
         k = camera.intrinsics
         depth = "with depth" if any(f.depth is not None for f in camera.frames) else "no depth"

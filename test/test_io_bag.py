@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 from mosiv_ros.cli import main
 from mosiv_ros.io.bag import (
     STORAGES,
+    chunk_checksums,
     iter_raw_messages,
     list_topics,
     read_custom_data,
@@ -43,6 +44,7 @@ from mosiv_ros.io.recording import (
     match_frames,
 )
 from mosiv_ros.io.scene import SCENE_KEY, Scene, SceneObject, scene_to_yaml
+from mosiv_ros.synth.shapes import make_shapes_recording
 
 TYPES = rosbags_types()
 
@@ -336,6 +338,49 @@ def test_corrupt_storage_bytes_raise_bag_error(request, tmp_path, bag_fixture):
     bag = damaged_copy(request.getfixturevalue(bag_fixture), tmp_path, overwrite_middle)
     with pytest.raises(BagError, match=f"^{bag}"):
         read_recording(bag)
+
+
+def flip_a_bit_inside_the_largest_chunk(path: Path) -> None:
+    """Flip one bit in the middle of the records of the MCAP file's largest chunk (image data)."""
+    data = bytearray(path.read_bytes())
+    chunks, offset = [], 8  # after the magic: records of opcode (1 byte), length (8), content
+    while data[offset] != 0x0F:  # up to the end of the data section
+        length = int.from_bytes(data[offset + 1 : offset + 9], "little")
+        if data[offset] == 0x06:
+            chunks.append((length, offset + 9))
+        offset += 9 + length
+    length, content = max(chunks)
+    data[content + length // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def test_a_bit_flipped_inside_a_chunk_of_a_new_bag_is_a_checksum_error(small_bag, tmp_path):
+    assert chunk_checksums(small_bag) == (1, 1)  # the one chunk carries its CRC
+    bag = damaged_copy(small_bag, tmp_path, flip_a_bit_inside_the_largest_chunk)
+    with pytest.raises(BagError, match="checksum mismatch"):
+        read_recording(bag)
+    with pytest.raises(BagError, match="checksum mismatch"):
+        list(iter_raw_messages(bag))
+
+
+def test_a_compressed_bag_carries_checksums_and_a_bag_without_them_still_reads(small_recording, small_bag,
+                                                                               tmp_path, capsys):
+    large = make_shapes_recording(n_frames=4, n_cameras=2, width=320, height=240)  # several chunks
+    compressed = write_recording(large, tmp_path / "zstd", compress=True)
+    with_crc, chunks = chunk_checksums(compressed)
+    assert with_crc == chunks > 1
+    assert_recordings_equal(read_recording(compressed), large)
+    older = rewrite(small_bag, tmp_path / "older")  # rosbags' own writer: CRC 0, "none"
+    assert chunk_checksums(older) == (0, 1)
+    assert_recordings_equal(read_recording(older), small_recording)
+    assert main(["info", str(older)]) == 0
+    assert "storage: mcap, 1 chunk, none with a checksum" in capsys.readouterr().out
+    assert main(["info", str(compressed)]) == 0
+    assert f"storage: mcap, {chunks} chunks, all with a checksum (CRC32)" in capsys.readouterr().out
+    sqlite = write_recording(small_recording, tmp_path / "sqlite", storage="sqlite3")
+    assert chunk_checksums(sqlite) is None
+    assert main(["info", str(sqlite)]) == 0
+    assert "storage: sqlite3 (no chunk checksums)" in capsys.readouterr().out
 
 
 def test_storage_holding_fewer_messages_than_metadata_says_is_an_error(small_bag, tmp_path):
