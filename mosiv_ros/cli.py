@@ -24,7 +24,7 @@ import yaml
 
 from mosiv_ros.config import STAGE_CONFIGS, describe
 from mosiv_ros.graph import GraphError
-from mosiv_ros.io.errors import MosivIOError
+from mosiv_ros.io.errors import MosivIOError, not_utf8
 
 LOG = logging.getLogger("mosiv")
 STAGE_NODES = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
@@ -164,7 +164,10 @@ def load_params_file(path: Path | None) -> dict[str, object]:
     """Stage configs from a ROS 2 params file (node name -> ros__parameters), defaults elsewhere."""
     from mosiv_ros.config import from_mapping
 
-    document = yaml.safe_load(path.read_text()) if path else {}
+    try:
+        document = yaml.safe_load(path.read_text(encoding="utf-8")) if path else {}
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: {not_utf8(exc)}") from None
     if document is not None and not isinstance(document, dict):
         raise ValueError(f"{path}: not a ROS 2 params file (expected a mapping of node names)")
     document = document or {}

@@ -282,6 +282,23 @@ def test_unreadable_metadata_raises_bag_error(small_bag, tmp_path):
         read_recording(bag)
 
 
+def test_metadata_that_is_not_utf8_raises_bag_error_naming_the_file(small_bag, tmp_path, capsys):
+    bag = Path(shutil.copytree(small_bag, tmp_path / "bag"))
+    metadata = bag / "metadata.yaml"
+    metadata.write_bytes(metadata.read_bytes().replace(b"objects:", b"obj\xfects:", 1))
+    with pytest.raises(BagError, match=r"metadata.yaml: not UTF-8 text \(byte 0xfe at offset \d+\)"):
+        read_recording(bag)
+    assert main(["info", str(bag)]) == 2
+    assert f"{bag}: metadata.yaml: not UTF-8 text" in capsys.readouterr().err
+
+
+def test_a_params_file_that_is_not_utf8_is_refused_naming_it(small_bag, tmp_path, capsys):
+    params = tmp_path / "params.yaml"
+    params.write_bytes(b"identify_node:\n  ros__parameters: {device: \xfecpu}\n")
+    assert main(["run", str(small_bag), "--out", str(tmp_path / "out"), "--params-file", str(params)]) == 2
+    assert f"mosiv run: error: {params}: not UTF-8 text (byte 0xfe at offset 43)" in capsys.readouterr().err
+
+
 # --- damaged storage ----------------------------------------------------------------------------
 
 

@@ -176,6 +176,14 @@ def test_load_scene_of_a_missing_file_raises_scene_error_naming_it(tmp_path):
         load_scene(str(tmp_path / "no_such.yaml"))
 
 
+def test_a_scene_file_that_is_not_utf8_raises_scene_error_naming_it(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(b"objects:\n  - {id: 1, name: b\xfell}\n")
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    assert str(info.value) == f"{path}: not UTF-8 text (byte 0xfe at offset 28)"
+
+
 def test_load_scene_of_a_directory_that_is_no_bag_raises_bag_error(tmp_path):
     with pytest.raises(BagError, match="no metadata.yaml"):
         load_scene(tmp_path)

@@ -12,6 +12,7 @@ import trimesh
 import yaml
 from synth_scenes import PAIR, write_scene
 
+from mosiv_ros.cli import main
 from mosiv_ros.io.errors import SceneError
 from mosiv_ros.synth.layout import lay_out
 from mosiv_ros.synth.scene_file import parse_scene_file, read_scene_file
@@ -150,6 +151,16 @@ def test_missing_mesh_file_and_unreadable_yaml_are_rejected(tmp_path):
     open_mesh.export(tmp_path / "open.stl")
     with pytest.raises(SceneError, match=r"objects\[1\].file: mesh must be a non-empty, watertight"):
         load(changed("objects.1", {**ball, "file": "open.stl"}), base_dir=tmp_path)
+
+
+def test_a_scene_file_that_is_not_utf8_is_rejected_naming_it(tmp_path, capsys):
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(yaml.safe_dump(PAIR).encode().replace(b"clay", b"cl\xfey"))
+    with pytest.raises(SceneError) as info:
+        read_scene_file(path)
+    assert str(info.value).startswith(f"{path}: not UTF-8 text (byte 0xfe at offset ")
+    assert main(["record", str(path), str(tmp_path / "bag")]) == 2
+    assert f"mosiv record: error: {path}: not UTF-8 text" in capsys.readouterr().err
 
 
 def test_scene_file_written_by_hand_round_trips_through_the_parser(tmp_path):

@@ -59,7 +59,7 @@ from rosbags.rosbag2 import (
     WriterError,
 )
 
-from mosiv_ros.io.errors import BagError, MessageError, SceneError
+from mosiv_ros.io.errors import BagError, MessageError, SceneError, not_utf8
 from mosiv_ros.io.mcap import add_chunk_crcs, chunk_crcs
 from mosiv_ros.io.messages import (
     camera_info_from_msg,
@@ -217,6 +217,8 @@ def read_custom_data(path: str | Path) -> dict[str, str]:
     try:
         document = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
         custom = document["rosbag2_bagfile_information"].get("custom_data") or {}
+    except UnicodeDecodeError as exc:
+        raise BagError(path, None, f"metadata.yaml: {not_utf8(exc)}") from None
     except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
         raise BagError(
             path, None, f"unreadable metadata.yaml: {type(exc).__name__}: {exc}"

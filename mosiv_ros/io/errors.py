@@ -13,6 +13,11 @@ import os
 from pathlib import Path
 
 
+def not_utf8(error: UnicodeDecodeError) -> str:
+    """The problem of a text file that is not UTF-8, for a message that names the file."""
+    return f"not UTF-8 text (byte 0x{error.object[error.start]:02x} at offset {error.start})"
+
+
 class MosivIOError(Exception):
     """Base class of every error raised by ``mosiv_ros.io`` on bad input data."""
 

@@ -52,7 +52,7 @@ from typing import Any
 
 import yaml
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, not_utf8
 
 _LOG = logging.getLogger(__name__)
 
@@ -380,8 +380,14 @@ def load_scene(source: str | Path) -> Scene:
             _LOG.info("%s declares no scene (no custom_data %r)", path, SCENE_KEY)
             return Scene()
         return parse_scene(text, source=f"{path} custom_data[{SCENE_KEY}]")
+    return parse_scene(read_scene_text(path), source=str(path))
+
+
+def read_scene_text(path: Path) -> str:
+    """The text of a scene file; SceneError naming it if it cannot be read or is not UTF-8."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError("", not_utf8(exc), str(path)) from None
     except OSError as exc:
         raise SceneError("", f"cannot read scene file: {exc.strerror}", str(path)) from None
-    return parse_scene(text, source=str(path))

@@ -81,7 +81,7 @@ import yaml
 
 from mosiv_ros.io.errors import SceneError
 from mosiv_ros.io.recording import CameraIntrinsics
-from mosiv_ros.io.scene import FAMILIES, load_yaml
+from mosiv_ros.io.scene import FAMILIES, load_yaml, read_scene_text
 from mosiv_ros.sim import FAMILY_PARAMS, MATERIAL_PARAMS
 from mosiv_ros.synth import cameras as rig
 from mosiv_ros.synth.effects import EffectSpec, check_unique, parse_effect
@@ -206,11 +206,7 @@ class SceneSpec:
 
 def read_scene_file(path: str | Path) -> SceneSpec:
     """Parse the scene file at ``path`` (no geometric checks: ``layout.lay_out`` makes them)."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SceneError("", f"cannot read scene file: {exc.strerror}", str(path)) from None
-    return parse_scene_file(text, source=str(path), base_dir=Path(path).parent)
+    return parse_scene_file(read_scene_text(Path(path)), source=str(path), base_dir=Path(path).parent)
 
 
 def parse_scene_file(text: str, source: str = "<string>", base_dir: Path | None = None) -> SceneSpec:
