@@ -163,11 +163,14 @@ def cmd_make_suite(args: argparse.Namespace) -> int:
 def load_params_file(path: Path | None) -> dict[str, object]:
     """Stage configs from a ROS 2 params file (node name -> ros__parameters), defaults elsewhere."""
     from mosiv_ros.config import from_mapping
+    from mosiv_ros.io.scene import load_yaml
 
     try:
-        document = yaml.safe_load(path.read_text(encoding="utf-8")) if path else {}
+        document = load_yaml(path.read_text(encoding="utf-8")) if path else {}
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: {not_utf8(exc)}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: invalid YAML: {exc}") from None
     if document is not None and not isinstance(document, dict):
         raise ValueError(f"{path}: not a ROS 2 params file (expected a mapping of node names)")
     document = document or {}

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from scipy.spatial.transform import Rotation
+from test_io_scene import alias_bomb
 
 from mosiv_ros.cli import main
 from mosiv_ros.io.bag import (
@@ -587,6 +588,14 @@ def test_invalid_scene_in_custom_data_raises_bag_error(small_bag, tmp_path):
     bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: bad})
     with pytest.raises(BagError, match=r"scene declaration .*objects\[0\].family"):
         read_recording(bag)
+
+
+def test_an_alias_bomb_in_the_scene_declaration_gives_mosiv_info_one_short_line(small_bag, tmp_path, capsys):
+    bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: alias_bomb(6, "objects: [BOMB]")})
+    assert main(["info", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert "scene declaration (custom_data 'mosiv.scene'): <string>: invalid YAML: its aliases expand it" in err
+    assert len(err) < 1000
 
 
 def test_mosiv_info_shows_cameras_objects_declared_parameters_ground_and_effects(

@@ -6,9 +6,10 @@ import pickle
 
 import pytest
 
-from mosiv_ros.io.errors import BagError, SceneError
+from mosiv_ros.io.errors import MAX_SHOWN_CHARS, BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
+    MAX_YAML_NODES,
     SCENE_KEY,
     DeclaredEffect,
     Scene,
@@ -135,6 +136,36 @@ def test_invalid_declaration_raises_scene_error_naming_the_field(text, field, pr
     assert info.value.field == field
     assert problem in info.value.problem
     assert str(info.value).startswith(f"test: {field}: ")
+
+
+def alias_bomb(levels: int, use: str) -> str:
+    """``use`` with BOMB replaced by a list of a few hundred characters whose aliases expand to
+    ``levels`` nested lists, the last one 10 ** levels strings."""
+    lists = ["&l0 [" + ", ".join(['"xxxxxxxx"'] * 10) + "]"]
+    lists += [f"&l{k} [{', '.join([f'*l{k - 1}'] * 10)}]" for k in range(1, levels)]
+    return use.replace("BOMB", "[" + ", ".join(lists) + "]") + "\n"
+
+
+@pytest.mark.parametrize("use", ["objects: [BOMB]", "objects: [{id: 1, name: a, params: {E: BOMB}}]",
+                                 "ground: {normal: BOMB}"])
+def test_yaml_whose_aliases_expand_beyond_the_limit_is_refused_with_a_short_message(use):
+    text = alias_bomb(6, use)  # a million strings
+    assert len(text) < 600
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="bomb.yaml")
+    assert str(info.value).startswith("bomb.yaml: invalid YAML: its aliases expand it to more than "
+                                      f"{MAX_YAML_NODES} nodes")
+    assert len(str(info.value)) < 300
+
+
+@pytest.mark.parametrize("use", ["objects: [BOMB]", "objects: [{id: 1, name: a, params: {E: BOMB}}]",
+                                 "ground: {normal: BOMB}", "objects: [{id: BOMB, name: a}]"])
+def test_a_long_value_is_cut_short_in_the_error_message(use):
+    text = alias_bomb(4, use)  # ten thousand strings: within the limit, but not a valid value
+    with pytest.raises(SceneError) as info:
+        parse_scene(text)
+    assert "[['xxxxxxxx'" in info.value.problem and "..." in info.value.problem
+    assert len(str(info.value)) < 2 * MAX_SHOWN_CHARS
 
 
 @pytest.mark.parametrize("text", ["- a\n- b\n", "objects: [\n", "just words"])

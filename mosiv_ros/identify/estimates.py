@@ -37,6 +37,7 @@ import yaml
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.fit import FitResult, Identifier
 from mosiv_ros.io.files import write_text
+from mosiv_ros.io.scene import load_yaml
 from mosiv_ros.sim.materials import FAMILY_PARAMS
 
 _LOG = logging.getLogger(__name__)
@@ -120,7 +121,7 @@ class Estimates:
     def from_yaml(cls, text: str) -> Estimates:
         """Estimates from the document ``to_yaml`` gives (ValueError if it is not one)."""
         try:
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
         except yaml.YAMLError as error:
             raise ValueError(f"estimates are not valid YAML ({error})") from None
         if not isinstance(data, dict):
@@ -226,7 +227,7 @@ class Estimates:
         """Estimates from a file ``write`` wrote (ValueError naming the file if it is not one)."""
         path = Path(path)
         try:
-            data = yaml.safe_load(path.read_text())
+            data = load_yaml(path.read_text(encoding="utf-8"))
             text = data["/**"]["ros__parameters"][PARAMETER]
         except (yaml.YAMLError, TypeError, KeyError):
             raise ValueError(f"{path}: not a mosiv estimates file (a ROS 2 parameter file whose "

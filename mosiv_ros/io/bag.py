@@ -59,7 +59,7 @@ from rosbags.rosbag2 import (
     WriterError,
 )
 
-from mosiv_ros.io.errors import BagError, MessageError, SceneError, not_utf8
+from mosiv_ros.io.errors import BagError, MessageError, SceneError, not_utf8, shown
 from mosiv_ros.io.mcap import add_chunk_crcs, chunk_crcs
 from mosiv_ros.io.messages import (
     camera_info_from_msg,
@@ -76,7 +76,7 @@ from mosiv_ros.io.messages import (
     transform_to_msg,
 )
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
-from mosiv_ros.io.scene import SCENE_KEY, Scene, parse_scene, scene_to_yaml
+from mosiv_ros.io.scene import SCENE_KEY, Scene, load_yaml, parse_scene, scene_to_yaml
 from mosiv_ros.io.streams import CameraFrameAssembler
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 
@@ -215,7 +215,7 @@ def read_custom_data(path: str | Path) -> dict[str, str]:
     path = Path(path)
     _check_bag_dir(path)
     try:
-        document = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
+        document = load_yaml((path / "metadata.yaml").read_text(encoding="utf-8"))
         custom = document["rosbag2_bagfile_information"].get("custom_data") or {}
     except UnicodeDecodeError as exc:
         raise BagError(path, None, f"metadata.yaml: {not_utf8(exc)}") from None
@@ -224,7 +224,7 @@ def read_custom_data(path: str | Path) -> dict[str, str]:
             path, None, f"unreadable metadata.yaml: {type(exc).__name__}: {exc}"
         ) from None
     if not isinstance(custom, dict):
-        raise BagError(path, None, f"metadata.yaml custom_data is not a mapping: {custom!r}")
+        raise BagError(path, None, f"metadata.yaml custom_data is not a mapping: {shown(custom)}")
     return {str(key): str(value) for key, value in custom.items()}
 
 

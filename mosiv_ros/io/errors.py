@@ -10,7 +10,25 @@ Every error type here survives pickling (the process runner may move them betwee
 from __future__ import annotations
 
 import os
+import reprlib
 from pathlib import Path
+
+MAX_SHOWN_CHARS = 200
+"""The most characters of a value that an error message shows (``shown``)."""
+_SHOWN = reprlib.Repr()
+_SHOWN.maxlevel = 3
+_SHOWN.maxlist = _SHOWN.maxtuple = _SHOWN.maxdict = _SHOWN.maxset = 8
+_SHOWN.maxstring = _SHOWN.maxother = _SHOWN.maxlong = MAX_SHOWN_CHARS
+
+
+def shown(value: object) -> str:
+    """``repr(value)`` for an error message: at most ``MAX_SHOWN_CHARS``, ``...`` where cut.
+
+    Nested data is cut while it is written (reprlib), so even a value that YAML aliases made
+    huge costs no time: messages embed what they were given through this, never whole.
+    """
+    text = _SHOWN.repr(value)
+    return text if len(text) <= MAX_SHOWN_CHARS else text[: MAX_SHOWN_CHARS - 3] + "..."
 
 
 def not_utf8(error: UnicodeDecodeError) -> str:

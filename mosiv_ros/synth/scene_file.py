@@ -79,7 +79,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, shown
 from mosiv_ros.io.recording import CameraIntrinsics
 from mosiv_ros.io.scene import FAMILIES, load_yaml, read_scene_text
 from mosiv_ros.sim import FAMILY_PARAMS, MATERIAL_PARAMS
@@ -224,12 +224,12 @@ def parse_scene_file(text: str, source: str = "<string>", base_dir: Path | None 
 def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     version = top.get("version", 1)
     if version != 1:
-        raise SceneError("version", f"unsupported scene file version {version!r} (expected 1)")
+        raise SceneError("version", f"unsupported scene file version {shown(version)} (expected 1)")
     name = top.string("name", Path(source).stem if source != "<string>" else "scene")
     duration = top.number("duration", positive=True)
     start = top.get("start_stamp_ns", DEFAULT_START_NS)
     if not isinstance(start, int) or isinstance(start, bool) or start < 0:
-        raise SceneError("start_stamp_ns", f"expected a non-negative integer, got {start!r}")
+        raise SceneError("start_stamp_ns", f"expected a non-negative integer, got {shown(start)}")
     entries = top.items("objects")
     if not entries:
         raise SceneError("objects", "a scene needs at least one object")
@@ -238,7 +238,7 @@ def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     for index, obj in enumerate(objects):
         if names.index(obj.name) != index:
             raise SceneError(f"objects[{index}].name",
-                             f"name {obj.name!r} already used by objects[{names.index(obj.name)}]")
+                             f"name {shown(obj.name)} already used by objects[{names.index(obj.name)}]")
     ground_fields = top.section("ground", {})
     ground = GroundSpec(ground_fields.number("height", 0.0),
                         ground_fields.number("half_size", GroundSpec.half_size, positive=True))
@@ -260,7 +260,7 @@ def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
 def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
     name = f.string("name")
     if "/" in name or " " in name:
-        raise SceneError(f.path("name"), f"must not contain '/' or spaces, got {name!r}")
+        raise SceneError(f.path("name"), f"must not contain '/' or spaces, got {shown(name)}")
     shape = f.string("shape", choices=SHAPES)
     size = _size(f, shape, base_dir)
     family = f.string("family", choices=FAMILIES)
@@ -268,11 +268,11 @@ def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
     allowed = tuple(_user_name(p) for p in FAMILY_PARAMS[family])
     declared = f.get("declared_params", [])
     if not isinstance(declared, list):
-        raise SceneError(f.path("declared_params"), f"expected a list, got {declared!r}")
+        raise SceneError(f.path("declared_params"), f"expected a list, got {shown(declared)}")
     for i, key in enumerate(declared):
         if key not in allowed:
             raise SceneError(f"{f.path('declared_params')}[{i}]",
-                             f"{key!r} is not a parameter of {family} (expected one of {', '.join(allowed)})")
+                             f"{shown(key)} is not a parameter of {family} (expected one of {', '.join(allowed)})")
     orientation = f.vector("orientation", 4, [0.0, 0.0, 0.0, 1.0])
     if not np.any(orientation):
         raise SceneError(f.path("orientation"), "must be a non-zero quaternion x, y, z, w")
