@@ -6,6 +6,7 @@ import pickle
 
 import pytest
 
+from mosiv_ros.cli import main
 from mosiv_ros.io.errors import MAX_SHOWN_CHARS, BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
@@ -52,8 +53,8 @@ def test_scene_round_trips_through_yaml_exactly():
 
 
 def test_exponents_without_dot_or_sign_are_numbers():
-    scene = parse_scene("objects: [{id: 1, name: a, family: fluid, params: {mu: 1e-3, E: 5E6}}]")
-    assert scene.objects[0].params == {"mu": 1e-3, "E": 5e6}
+    scene = parse_scene("objects: [{id: 1, name: a, family: fluid, params: {viscosity: 1e-3, E: 5E6}}]")
+    assert scene.objects[0].params == {"viscosity": 1e-3, "E": 5e6}
 
 
 def test_empty_declaration_is_an_empty_scene():
@@ -172,6 +173,30 @@ def test_a_long_value_is_cut_short_in_the_error_message(use):
 def test_text_that_is_not_a_yaml_mapping_raises_scene_error(text):
     with pytest.raises(SceneError, match="<string>"):
         parse_scene(text)
+
+
+@pytest.mark.parametrize(("params", "field", "problem"), [
+    ("{density: -1000}", "objects[1].params.density",
+     "density of object 'clay' = -1000 kg/m^3 is out of range [1, 20000] kg/m^3 (mass density)"),
+    ("{E: -5.0e4}", "objects[1].params.E", "E of object 'clay' = -50000 Pa is out of range [100, 1e+10] Pa"),
+    ("{friction_angle_deg: 80}", "objects[1].params.friction_angle_deg",
+     "friction_angle of object 'clay' = 1.39626 rad is out of range [0, 1.0472] rad (Drucker-Prager friction "
+     "angle) (given as friction_angle_deg = 80)"),
+    ("{stiffness: 3}", "objects[1].params.stiffness",
+     "object 'clay': unknown parameter 'stiffness' (known: E, nu, density, "),
+])
+def test_a_declared_parameter_the_simulator_would_refuse_is_refused_when_read(params, field, problem,
+                                                                               small_bag, tmp_path, capsys):
+    text = f"objects: [{{id: 1, name: ball}}, {{id: 2, name: clay, family: plastic, params: {params}}}]"
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="test")
+    assert info.value.field == field
+    assert problem in info.value.problem
+    from test_io_bag import rewrite
+
+    bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: text})
+    assert main(["info", str(bag)]) == 2
+    assert f"scene declaration (custom_data 'mosiv.scene'): <string>: {field}: " in capsys.readouterr().err
 
 
 def test_object_by_id_finds_declared_objects_and_rejects_others():

@@ -172,7 +172,29 @@ class SceneObject:
                 raise SceneError(
                     f"{prefix}params.{key}", f"expected a finite number in SI units, got {shown(value)}"
                 )
+        if self.params:
+            _check_material_params(self.name, self.params, f"{prefix}params")
         self.params = {k: _plain(v) for k, v in self.params.items()}
+
+
+def _check_material_params(name: str, params: dict[str, float], where: str) -> None:
+    """SceneError naming the object and the parameter that the simulator would refuse.
+
+    Known names and valid ranges are the simulator's own (``sim.materials.MATERIAL_PARAMS``),
+    checked here so that a declaration is refused when it is read, not after reconstruction.
+    """
+    from mosiv_ros.sim.materials import FRICTION_ANGLE_DEG, MATERIAL_PARAMS, in_sim_units  # Warp
+
+    specs = {spec.name: spec for spec in MATERIAL_PARAMS}
+    for key, value in params.items():
+        ((sim_name, sim_value),) = in_sim_units({key: value}).items()
+        spec = specs.get(sim_name)
+        if spec is None:
+            raise SceneError(f"{where}.{key}", f"object {shown(name)}: unknown parameter {shown(key)} "
+                             f"(known: {', '.join(specs)}, {FRICTION_ANGLE_DEG})")
+        if not spec.in_range(sim_value):
+            given = f" (given as {key} = {value:g})" if key != sim_name else ""
+            raise SceneError(f"{where}.{key}", f"{spec.out_of_range(sim_value, f'object {shown(name)}')}{given}")
 
 
 ParamValue = float | list[float] | dict[str, float]

@@ -23,10 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
-from mosiv_ros.identify.problem import in_sim_units
 from mosiv_ros.io.errors import shown
 from mosiv_ros.io.scene import load_yaml
-from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS
+from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS, in_sim_units
 
 _SPECS = {spec.name: spec for spec in MATERIAL_PARAMS}
 
