@@ -124,6 +124,14 @@ BAD = [
     ("effects.2.camera", "cam9", "effects[2].camera", "unknown value 'cam9'"),
     ("effects.1", PAIR["effects"][0], "effects[1].type", "'wind' already given by effects[0]"),
     ("simulation.particle_spacing", 0.05, "simulation.particle_spacing", "must not exceed dx"),
+    # what would not fit in memory is refused before it is allocated
+    ("cameras.resolution", [100000, 100000], "cameras.resolution", "is 1e+10 pixels, more than 16777216 per camera"),
+    ("duration", 1e9, "duration", "1e+09 s at cameras.fps 10 is 1e+10 frames, more than 10000"),
+    ("simulation.particle_spacing", 1e-6, "simulation.particle_spacing",
+     "objects[0] ('clay') would take 8.4e+14 particles at a spacing of 1e-06 m: with the objects before it more "
+     "than 4000000"),
+    ("objects.1.radius", 5.0, "simulation.particle_spacing",
+     "objects[1] ('ball') would take 2.97e+08 particles at a spacing of 0.015 m"),
 ]
 
 

@@ -44,7 +44,7 @@ from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration,
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
 from mosiv_ros.synth.layout import Layout, lay_out
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
-from mosiv_ros.synth.scene_file import SceneSpec
+from mosiv_ros.synth.scene_file import SceneSpec, check_recording_size
 
 _LOG = logging.getLogger(__name__)
 
@@ -63,6 +63,7 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     """
     check_new_path(out)  # before minutes of simulation, not after
     layout = lay_out(spec)
+    check_recording_size(spec, len(layout.x))  # before the simulation holds the particles' paths
     offsets = camera_offsets(spec.effects)
     extra = math.ceil(max([0.0, *offsets.values()]) * spec.cameras.fps)  # frames a late camera needs
     positions, settings = simulate(layout, spec.n_frames + extra, progress)

@@ -97,6 +97,21 @@ PALETTE = ([210.0, 40.0, 35.0], [40.0, 170.0, 60.0], [45.0, 70.0, 200.0], [220.0
 """Default object colours, by mask id."""
 _SPECS = {spec.name: spec for spec in MATERIAL_PARAMS}
 
+# What one recording may ask for, checked before anything is allocated (the scene file's
+# fields are named in the error). docs/limits_io.md lists them.
+MAX_FRAMES = 10_000
+"""Most frames of a recording: duration x cameras.fps + 1."""
+MAX_IMAGE_PIXELS = 4096 * 4096
+"""Most pixels of one camera image: cameras.resolution width x height."""
+MAX_PARTICLES = 4_000_000
+"""Most particles the objects may be filled with (simulation.particle_spacing), counted on the
+lattice each shape is cut from."""
+MAX_RECORDING_BYTES = 8 * 2**30
+"""Most bytes a recording may hold before it is written: every camera's images (RGB, mask and
+depth) and the particles' paths (float32), all of which stay in memory until the end."""
+BYTES_PER_PIXEL = 3 + 2 + 4
+"""RGB, a mono16 mask (the wider one) and float32 depth, per pixel of a frame."""
+
 
 @dataclass
 class ObjectSpec:
@@ -253,8 +268,31 @@ def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     noise_fields.done()
     simulation = _simulation(top.section("simulation", {}))
     top.done()
-    return SceneSpec(name, source, duration, start, objects, ground, gripper, cameras, effects, noise,
+    spec = SceneSpec(name, source, duration, start, objects, ground, gripper, cameras, effects, noise,
                      simulation)
+    if duration * cameras.fps + 1 > MAX_FRAMES:
+        raise SceneError("duration", f"{duration:g} s at cameras.fps {cameras.fps:g} is "
+                         f"{duration * cameras.fps + 1:.3g} frames, more than {MAX_FRAMES}")
+    return spec
+
+
+def check_recording_size(spec: SceneSpec, particles: int) -> None:
+    """SceneError naming the scene file if its recording would hold more than MAX_RECORDING_BYTES.
+
+    ``particles``: how many the laid-out objects have. Made before the simulation and rendering.
+    """
+    frames, cameras = spec.n_frames + 1, len(spec.cameras.names)
+    k = spec.cameras.intrinsics
+    images = frames * cameras * k.width * k.height * (BYTES_PER_PIXEL - (0 if spec.cameras.depth else 4))
+    paths = frames * particles * 3 * 4
+    if images + paths > MAX_RECORDING_BYTES:
+        field = "cameras.resolution" if images >= paths else "simulation.particle_spacing"
+        raise SceneError(field, f"the recording would hold {(images + paths) / 2**30:.3g} GiB: images "
+                         f"{images / 2**30:.3g} GiB ({frames} frames x {cameras} cameras x {k.width} x "
+                         f"{k.height} pixels) and particle paths {paths / 2**30:.3g} GiB ({particles} "
+                         f"particles), more than {MAX_RECORDING_BYTES / 2**30:g} GiB (shorten duration, "
+                         "lower cameras.fps or cameras.resolution, or raise simulation.particle_spacing)",
+                         spec.source)
 
 
 def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
@@ -413,6 +451,9 @@ def _cameras(f: Fields) -> CameraSpec:
     else:
         fov = f.number("horizontal_fov", 0.9, lower=0.05, upper=3.0)
         intrinsics = rig.pinhole(width, height_px, horizontal_fov=fov)
+    if width * height_px > MAX_IMAGE_PIXELS:
+        raise SceneError(f.path("resolution"), f"{width} x {height_px} is {width * height_px:.3g} pixels, "
+                         f"more than {MAX_IMAGE_PIXELS} per camera image")
     spec = CameraSpec(names, poses, intrinsics, f.number("fps", positive=True), f.boolean("depth", True),
                       placement)
     f.done(f" for {placement} placement")
