@@ -31,6 +31,7 @@ from typing import Any
 import yaml
 
 from mosiv_ros.io.errors import OutputError
+from mosiv_ros.io.scene import load_yaml
 
 MANIFEST = "outputs.yaml"
 """The file of an output directory naming the run that wrote it and the files it wrote."""
@@ -150,7 +151,7 @@ class OutputDir:
     def _older_files(self) -> list[str]:
         """The files an older run listed in the manifest (plain names inside this directory)."""
         try:
-            document = yaml.safe_load((self.path / MANIFEST).read_text(encoding="utf-8"))
+            document = load_yaml((self.path / MANIFEST).read_text(encoding="utf-8"))
             files = document["files"]
         except (OSError, UnicodeDecodeError, yaml.YAMLError, KeyError, TypeError):
             return []
