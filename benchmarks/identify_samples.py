@@ -32,6 +32,7 @@ import numpy as np
 from objective_scan import asked_densities, declare_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
+from mosiv_ros.io.files import OutputDir
 from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
 from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import read_ground_truth
@@ -52,7 +53,8 @@ def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: li
 def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
         density: list[str] | None = None) -> dict:
     start = time.perf_counter()
-    result = run_prepared(prepared_with(bag, config, true_particles, density or []), out, config)
+    directory = OutputDir(out, f"benchmarks/identify_samples.py {bag}")
+    result = run_prepared(prepared_with(bag, config, true_particles, density or []), directory, config)
     report = result.report
     fit = report["fit"]
     history = fit.get("history", [])

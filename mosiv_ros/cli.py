@@ -24,7 +24,7 @@ import yaml
 
 from mosiv_ros.config import STAGE_CONFIGS, describe
 from mosiv_ros.graph import GraphError
-from mosiv_ros.io.errors import MosivIOError
+from mosiv_ros.io.errors import MosivIOError, not_utf8
 
 LOG = logging.getLogger("mosiv")
 STAGE_NODES = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
@@ -49,10 +49,19 @@ def cmd_params(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from mosiv_ros.io.bag import read_recording
+    from mosiv_ros.io.bag import chunk_checksums, read_recording
 
     recording = read_recording(args.bag)
     print(f"{args.bag}:")
+    checksums = chunk_checksums(args.bag)
+    if checksums is None:
+        print("  storage: sqlite3 (no chunk checksums)")
+    else:
+        with_crc, chunks = checksums
+        carried = ("all with a checksum (CRC32)" if with_crc == chunks else
+                   "none with a checksum (a corrupt chunk may read as data)" if with_crc == 0 else
+                   f"{with_crc} with a checksum (CRC32)")
+        print(f"  storage: mcap, {chunks} chunk{'' if chunks == 1 else 's'}, {carried}")
     for name, camera in sorted(recording.cameras.items()):
         k = camera.intrinsics
         depth = "with depth" if any(f.depth is not None for f in camera.frames) else "no depth"
@@ -154,8 +163,14 @@ def cmd_make_suite(args: argparse.Namespace) -> int:
 def load_params_file(path: Path | None) -> dict[str, object]:
     """Stage configs from a ROS 2 params file (node name -> ros__parameters), defaults elsewhere."""
     from mosiv_ros.config import from_mapping
+    from mosiv_ros.io.scene import load_yaml
 
-    document = yaml.safe_load(path.read_text()) if path else {}
+    try:
+        document = load_yaml(path.read_text(encoding="utf-8")) if path else {}
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: {not_utf8(exc)}") from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: invalid YAML: {exc}") from None
     if document is not None and not isinstance(document, dict):
         raise ValueError(f"{path}: not a ROS 2 params file (expected a mapping of node names)")
     document = document or {}
@@ -235,16 +250,15 @@ def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
     from mosiv_ros.graph import Graph, NodeSpec
-    from mosiv_ros.identify.estimates import Estimates
+    from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
     from mosiv_ros.io.bag import list_topics
+    from mosiv_ros.io.files import OutputDir
     from mosiv_ros.pipeline import evaluate, fit_window, prepare
 
     start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    estimates_file = out / "estimates.yaml"
-    estimates_file.unlink(missing_ok=True)
+    out = OutputDir(Path(args.out).resolve(), f"mosiv graph {bag}")  # before any work
+    estimates_file = out.claim(ESTIMATES_FILE)  # identify_node writes it; an older run's files go
     images = min(info.message_count for topic, info in list_topics(bag).items()
                  if topic.endswith("/color/image_raw"))
     window = fit_window(images, args.holdout)
@@ -271,7 +285,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     estimates = Estimates.read(estimates_file)
     result = evaluate(prepare(bag, config), estimates, estimates.frames, out, config)
     _print_summary(result)
-    print(f"report: {out / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
+    print(f"report: {out.path / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
     return 0 if code == 0 and frame_sets else 1
 
 

@@ -6,6 +6,7 @@ lift the first complete one (stage 2), fit the objects' parameters on the first 
 roll the identified twin over the whole recording and ``horizon`` seconds past it, score it
 against the reconstruction (and the ground truth of a synthetic recording), and write
 ``estimates.yaml`` (a prediction_node params file), ``report.json``, ``report.md`` and plots.
+``out`` is checked before any work and holds one run's files only (``io.files.OutputDir``).
 The ROS nodes run the same stages on live topics; this is the same code without a ROS graph.
 
 What it is for: the command line and tests. What it is not for: algorithms (each stage's
@@ -21,11 +22,12 @@ from pathlib import Path
 
 from mosiv_ros.config import IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
-from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.identify.run import identify_objects, phase_progress
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.files import OutputDir
 from mosiv_ros.io.recording import Recording
 from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
 from mosiv_ros.predict.twin import Twin
@@ -108,10 +110,11 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
         progress: Progress | None = None) -> RunResult:
     """Run every stage on a recording (the module docstring); ``progress``: ``mosiv_ros.progress``."""
     config = config or RunConfig()
-    return run_prepared(prepare(bag, config, progress), out, config, progress)
+    directory = OutputDir(out, f"mosiv run {bag}")  # before any work: a bad place fails now
+    return run_prepared(prepare(bag, config, progress), directory, config, progress)
 
 
-def run_prepared(prepared: Prepared, out: str | Path, config: RunConfig,
+def run_prepared(prepared: Prepared, out: OutputDir, config: RunConfig,
                  progress: Progress | None = None) -> RunResult:
     """``run`` from the fit on: identification, twin, scores and report of a prepared recording."""
     identify = config.identify
@@ -126,9 +129,7 @@ def run_prepared(prepared: Prepared, out: str | Path, config: RunConfig,
                                       prepared.recording.gripper_poses,
                                       phase_progress(progress, "identify"))
     prepared.timing["identify_s"] = time.perf_counter() - tick
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    identification.estimates.write(out / "estimates.yaml")
+    out.write_text(ESTIMATES_FILE, identification.estimates.file_text(ESTIMATES_FILE))
     if identification.result is None:
         raise SimulationError(f"identification failed: {identification.estimates.scene_message}")
     result = identification.result
@@ -139,11 +140,9 @@ def run_prepared(prepared: Prepared, out: str | Path, config: RunConfig,
     return evaluate(prepared, identification.estimates, identification.window, out, config, fit)
 
 
-def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | Path,
+def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: OutputDir,
              config: RunConfig, fit: dict | None = None) -> RunResult:
     """Roll the twin of ``estimates`` over the recording and past it, score it, write the report."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     timing = dict(prepared.timing)
     tick = time.perf_counter()
     scene = prepared.recording.scene
@@ -168,4 +167,4 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: str | P
         report["parameter_errors"] = parameter_errors(estimates, truth)
         report["truth_effects"] = truth.get("effects", [])
     write_report(out, report, prediction, prepared.frames, window)
-    return RunResult(estimates, report, out)
+    return RunResult(estimates, report, out.path)

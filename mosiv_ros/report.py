@@ -19,6 +19,7 @@ import numpy as np
 
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE
 from mosiv_ros.identify.family import HOLDOUT
+from mosiv_ros.io.files import OutputDir
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 
@@ -38,13 +39,12 @@ def jsonable(value):
     return value
 
 
-def write_report(out: Path, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
+def write_report(out: OutputDir, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
                  fitted: int) -> list[Path]:
-    """Write report.json, report.md and the plots; return their paths."""
-    paths = [out / "report.json", out / "report.md"]
-    paths[0].write_text(json.dumps(jsonable(report), indent=1))
+    """Write report.json, report.md and the plots (each whole: ``io.files``); return their paths."""
+    paths = [out.write_text("report.json", json.dumps(jsonable(report), indent=1))]
     plots = _plots(out, report, prediction, frames, fitted)
-    paths[1].write_text(_markdown(report, [p.name for p in plots]))
+    paths.append(out.write_text("report.md", _markdown(report, [p.name for p in plots])))
     return paths + plots
 
 
@@ -124,7 +124,7 @@ def _cell(metrics: dict, key: str, scale: float = 1.0) -> str:
     return "" if value is None else f"{value * scale:.3g}"
 
 
-def _plots(out: Path, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
+def _plots(out: OutputDir, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
            fitted: int) -> list[Path]:
     import matplotlib
 
@@ -158,8 +158,6 @@ def _plots(out: Path, report: dict, prediction: Prediction, frames: Sequence[Obs
         axes[1].set(xlabel="t (s)", ylabel="mm", title=f"{name}: residual (dashed: end of fit)")
         axes[1].legend(fontsize=7)
         fig.tight_layout()
-        path = out / f"{name}.png"
-        fig.savefig(path, dpi=90)
+        paths.append(out.save_figure(f"{name}.png", fig))
         plt.close(fig)
-        paths.append(path)
     return paths

@@ -17,10 +17,12 @@ import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from scipy.spatial.transform import Rotation
+from test_io_scene import alias_bomb
 
 from mosiv_ros.cli import main
 from mosiv_ros.io.bag import (
     STORAGES,
+    chunk_checksums,
     iter_raw_messages,
     list_topics,
     read_custom_data,
@@ -43,6 +45,7 @@ from mosiv_ros.io.recording import (
     match_frames,
 )
 from mosiv_ros.io.scene import SCENE_KEY, Scene, SceneObject, scene_to_yaml
+from mosiv_ros.synth.shapes import make_shapes_recording
 
 TYPES = rosbags_types()
 
@@ -280,6 +283,23 @@ def test_unreadable_metadata_raises_bag_error(small_bag, tmp_path):
         read_recording(bag)
 
 
+def test_metadata_that_is_not_utf8_raises_bag_error_naming_the_file(small_bag, tmp_path, capsys):
+    bag = Path(shutil.copytree(small_bag, tmp_path / "bag"))
+    metadata = bag / "metadata.yaml"
+    metadata.write_bytes(metadata.read_bytes().replace(b"objects:", b"obj\xfects:", 1))
+    with pytest.raises(BagError, match=r"metadata.yaml: not UTF-8 text \(byte 0xfe at offset \d+\)"):
+        read_recording(bag)
+    assert main(["info", str(bag)]) == 2
+    assert f"{bag}: metadata.yaml: not UTF-8 text" in capsys.readouterr().err
+
+
+def test_a_params_file_that_is_not_utf8_is_refused_naming_it(small_bag, tmp_path, capsys):
+    params = tmp_path / "params.yaml"
+    params.write_bytes(b"identify_node:\n  ros__parameters: {device: \xfecpu}\n")
+    assert main(["run", str(small_bag), "--out", str(tmp_path / "out"), "--params-file", str(params)]) == 2
+    assert f"mosiv run: error: {params}: not UTF-8 text (byte 0xfe at offset 43)" in capsys.readouterr().err
+
+
 # --- damaged storage ----------------------------------------------------------------------------
 
 
@@ -336,6 +356,49 @@ def test_corrupt_storage_bytes_raise_bag_error(request, tmp_path, bag_fixture):
     bag = damaged_copy(request.getfixturevalue(bag_fixture), tmp_path, overwrite_middle)
     with pytest.raises(BagError, match=f"^{bag}"):
         read_recording(bag)
+
+
+def flip_a_bit_inside_the_largest_chunk(path: Path) -> None:
+    """Flip one bit in the middle of the records of the MCAP file's largest chunk (image data)."""
+    data = bytearray(path.read_bytes())
+    chunks, offset = [], 8  # after the magic: records of opcode (1 byte), length (8), content
+    while data[offset] != 0x0F:  # up to the end of the data section
+        length = int.from_bytes(data[offset + 1 : offset + 9], "little")
+        if data[offset] == 0x06:
+            chunks.append((length, offset + 9))
+        offset += 9 + length
+    length, content = max(chunks)
+    data[content + length // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def test_a_bit_flipped_inside_a_chunk_of_a_new_bag_is_a_checksum_error(small_bag, tmp_path):
+    assert chunk_checksums(small_bag) == (1, 1)  # the one chunk carries its CRC
+    bag = damaged_copy(small_bag, tmp_path, flip_a_bit_inside_the_largest_chunk)
+    with pytest.raises(BagError, match="checksum mismatch"):
+        read_recording(bag)
+    with pytest.raises(BagError, match="checksum mismatch"):
+        list(iter_raw_messages(bag))
+
+
+def test_a_compressed_bag_carries_checksums_and_a_bag_without_them_still_reads(small_recording, small_bag,
+                                                                               tmp_path, capsys):
+    large = make_shapes_recording(n_frames=4, n_cameras=2, width=320, height=240)  # several chunks
+    compressed = write_recording(large, tmp_path / "zstd", compress=True)
+    with_crc, chunks = chunk_checksums(compressed)
+    assert with_crc == chunks > 1
+    assert_recordings_equal(read_recording(compressed), large)
+    older = rewrite(small_bag, tmp_path / "older")  # rosbags' own writer: CRC 0, "none"
+    assert chunk_checksums(older) == (0, 1)
+    assert_recordings_equal(read_recording(older), small_recording)
+    assert main(["info", str(older)]) == 0
+    assert "storage: mcap, 1 chunk, none with a checksum" in capsys.readouterr().out
+    assert main(["info", str(compressed)]) == 0
+    assert f"storage: mcap, {chunks} chunks, all with a checksum (CRC32)" in capsys.readouterr().out
+    sqlite = write_recording(small_recording, tmp_path / "sqlite", storage="sqlite3")
+    assert chunk_checksums(sqlite) is None
+    assert main(["info", str(sqlite)]) == 0
+    assert "storage: sqlite3 (no chunk checksums)" in capsys.readouterr().out
 
 
 def test_storage_holding_fewer_messages_than_metadata_says_is_an_error(small_bag, tmp_path):
@@ -430,6 +493,46 @@ def test_calibration_changing_over_time_raises_bag_error(small_bag, tmp_path, st
         read_recording(bag)
 
 
+def _calibration(field: str, value: float):
+    """A change of one CameraInfo calibration value: ``k[i]`` or ``d[i]``."""
+    name, index = field[0], int(field[2:-1])
+
+    def change(msg):
+        values = getattr(msg, name).copy()
+        values[index] = value
+        setattr(msg, name, values)
+        return msg
+
+    return change
+
+
+BAD_CALIBRATIONS = [  # (CameraInfo field, value, where it shows, what the error says)
+    ("k[0]", 0.0, "fx", "must be a positive, finite number of pixels, got 0.0"),
+    ("k[0]", float("nan"), "fx", "must be a positive, finite number of pixels, got nan"),
+    ("k[4]", -300.0, "fy", "must be a positive, finite number of pixels, got -300.0"),
+    ("k[2]", 40.0, "cx", "principal point"),
+    ("k[5]", float("inf"), "cy", "principal point"),
+    ("d[1]", float("nan"), "distortion", "must be finite"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "name", "problem"), BAD_CALIBRATIONS,
+                         ids=[f"{f}={v}" for f, v, _, _ in BAD_CALIBRATIONS])
+@pytest.mark.parametrize("every_stamp", [True, False], ids=["every stamp", "one stamp"])
+def test_bad_calibration_raises_bag_error_naming_camera_and_field(small_bag, tmp_path, stamps, capsys, field,
+                                                                    value, name, problem, every_stamp):
+    stamp = None if every_stamp else stamps[2]
+    bag = rewrite(small_bag, tmp_path / "bag", at("/cam1/color/camera_info", stamp, _calibration(field, value)))
+    with pytest.raises(BagError) as info:
+        read_recording(bag)
+    assert info.value.topic == "/cam1/color/camera_info"  # the camera
+    assert f"CameraInfo: {field} ({name})" in info.value.problem and problem in info.value.problem
+    assert "calibration changes" not in info.value.problem
+    assert main(["info", str(bag)]) == 2
+    assert f"topic /cam1/color/camera_info: message at stamp {stamp or stamps[0]}: CameraInfo: {field} ({name})" \
+        in capsys.readouterr().err
+
+
 def test_image_without_mask_of_the_same_stamp_raises_bag_error(small_bag, tmp_path, stamps):
     bag = rewrite(small_bag, tmp_path / "bag", at("/cam0/instance_mask", stamps[1], lambda m: None))
     with pytest.raises(BagError) as info:
@@ -485,6 +588,14 @@ def test_invalid_scene_in_custom_data_raises_bag_error(small_bag, tmp_path):
     bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: bad})
     with pytest.raises(BagError, match=r"scene declaration .*objects\[0\].family"):
         read_recording(bag)
+
+
+def test_an_alias_bomb_in_the_scene_declaration_gives_mosiv_info_one_short_line(small_bag, tmp_path, capsys):
+    bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: alias_bomb(6, "objects: [BOMB]")})
+    assert main(["info", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert "scene declaration (custom_data 'mosiv.scene'): <string>: invalid YAML: its aliases expand it" in err
+    assert len(err) < 1000
 
 
 def test_mosiv_info_shows_cameras_objects_declared_parameters_ground_and_effects(

@@ -6,9 +6,11 @@ import pickle
 
 import pytest
 
-from mosiv_ros.io.errors import BagError, SceneError
+from mosiv_ros.cli import main
+from mosiv_ros.io.errors import MAX_SHOWN_CHARS, BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
+    MAX_YAML_NODES,
     SCENE_KEY,
     DeclaredEffect,
     Scene,
@@ -51,8 +53,8 @@ def test_scene_round_trips_through_yaml_exactly():
 
 
 def test_exponents_without_dot_or_sign_are_numbers():
-    scene = parse_scene("objects: [{id: 1, name: a, family: fluid, params: {mu: 1e-3, E: 5E6}}]")
-    assert scene.objects[0].params == {"mu": 1e-3, "E": 5e6}
+    scene = parse_scene("objects: [{id: 1, name: a, family: fluid, params: {viscosity: 1e-3, E: 5E6}}]")
+    assert scene.objects[0].params == {"viscosity": 1e-3, "E": 5e6}
 
 
 def test_empty_declaration_is_an_empty_scene():
@@ -137,10 +139,64 @@ def test_invalid_declaration_raises_scene_error_naming_the_field(text, field, pr
     assert str(info.value).startswith(f"test: {field}: ")
 
 
+def alias_bomb(levels: int, use: str) -> str:
+    """``use`` with BOMB replaced by a list of a few hundred characters whose aliases expand to
+    ``levels`` nested lists, the last one 10 ** levels strings."""
+    lists = ["&l0 [" + ", ".join(['"xxxxxxxx"'] * 10) + "]"]
+    lists += [f"&l{k} [{', '.join([f'*l{k - 1}'] * 10)}]" for k in range(1, levels)]
+    return use.replace("BOMB", "[" + ", ".join(lists) + "]") + "\n"
+
+
+@pytest.mark.parametrize("use", ["objects: [BOMB]", "objects: [{id: 1, name: a, params: {E: BOMB}}]",
+                                 "ground: {normal: BOMB}"])
+def test_yaml_whose_aliases_expand_beyond_the_limit_is_refused_with_a_short_message(use):
+    text = alias_bomb(6, use)  # a million strings
+    assert len(text) < 600
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="bomb.yaml")
+    assert str(info.value).startswith("bomb.yaml: invalid YAML: its aliases expand it to more than "
+                                      f"{MAX_YAML_NODES} nodes")
+    assert len(str(info.value)) < 300
+
+
+@pytest.mark.parametrize("use", ["objects: [BOMB]", "objects: [{id: 1, name: a, params: {E: BOMB}}]",
+                                 "ground: {normal: BOMB}", "objects: [{id: BOMB, name: a}]"])
+def test_a_long_value_is_cut_short_in_the_error_message(use):
+    text = alias_bomb(4, use)  # ten thousand strings: within the limit, but not a valid value
+    with pytest.raises(SceneError) as info:
+        parse_scene(text)
+    assert "[['xxxxxxxx'" in info.value.problem and "..." in info.value.problem
+    assert len(str(info.value)) < 2 * MAX_SHOWN_CHARS
+
+
 @pytest.mark.parametrize("text", ["- a\n- b\n", "objects: [\n", "just words"])
 def test_text_that_is_not_a_yaml_mapping_raises_scene_error(text):
     with pytest.raises(SceneError, match="<string>"):
         parse_scene(text)
+
+
+@pytest.mark.parametrize(("params", "field", "problem"), [
+    ("{density: -1000}", "objects[1].params.density",
+     "density of object 'clay' = -1000 kg/m^3 is out of range [1, 20000] kg/m^3 (mass density)"),
+    ("{E: -5.0e4}", "objects[1].params.E", "E of object 'clay' = -50000 Pa is out of range [100, 1e+10] Pa"),
+    ("{friction_angle_deg: 80}", "objects[1].params.friction_angle_deg",
+     "friction_angle of object 'clay' = 1.39626 rad is out of range [0, 1.0472] rad (Drucker-Prager friction "
+     "angle) (given as friction_angle_deg = 80)"),
+    ("{stiffness: 3}", "objects[1].params.stiffness",
+     "object 'clay': unknown parameter 'stiffness' (known: E, nu, density, "),
+])
+def test_a_declared_parameter_the_simulator_would_refuse_is_refused_when_read(params, field, problem,
+                                                                               small_bag, tmp_path, capsys):
+    text = f"objects: [{{id: 1, name: ball}}, {{id: 2, name: clay, family: plastic, params: {params}}}]"
+    with pytest.raises(SceneError) as info:
+        parse_scene(text, source="test")
+    assert info.value.field == field
+    assert problem in info.value.problem
+    from test_io_bag import rewrite
+
+    bag = rewrite(small_bag, tmp_path / "bag", custom_data={SCENE_KEY: text})
+    assert main(["info", str(bag)]) == 2
+    assert f"scene declaration (custom_data 'mosiv.scene'): <string>: {field}: " in capsys.readouterr().err
 
 
 def test_object_by_id_finds_declared_objects_and_rejects_others():
@@ -174,6 +230,14 @@ def test_load_scene_of_a_bag_without_declaration_is_empty(tmp_path):
 def test_load_scene_of_a_missing_file_raises_scene_error_naming_it(tmp_path):
     with pytest.raises(SceneError, match="no_such.yaml: cannot read scene file"):
         load_scene(str(tmp_path / "no_such.yaml"))
+
+
+def test_a_scene_file_that_is_not_utf8_raises_scene_error_naming_it(tmp_path):
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(b"objects:\n  - {id: 1, name: b\xfell}\n")
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    assert str(info.value) == f"{path}: not UTF-8 text (byte 0xfe at offset 28)"
 
 
 def test_load_scene_of_a_directory_that_is_no_bag_raises_bag_error(tmp_path):

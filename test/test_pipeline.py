@@ -21,9 +21,10 @@ from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
 from mosiv_ros.identify.run import identify_objects
 from mosiv_ros.io.bag import read_recording
+from mosiv_ros.io.files import MANIFEST, OutputDir
 from mosiv_ros.io.messages import pointcloud_from_msg, stamp_to_ns
 from mosiv_ros.nodes.outputs import statuses_of
-from mosiv_ros.pipeline import RunConfig, prepare
+from mosiv_ros.pipeline import RunConfig, evaluate, prepare
 from mosiv_ros.predict.twin import Twin
 from mosiv_ros.report import _markdown
 
@@ -107,6 +108,28 @@ def test_mosiv_graph_runs_the_node_graph_from_an_empty_kernel_cache_and_prints_w
     assert "received 9 complete frame sets; identify_node fitted the first 6" in result.stdout
     assert f"report: {out / 'report.md'}" in result.stdout
     assert (out / "estimates.yaml").is_file() and (out / "report.json").is_file()
+
+
+@pytest.mark.slow
+def test_a_run_removes_an_older_runs_outputs_instead_of_mixing_with_them(drop_bag, tmp_path):
+    config = RunConfig(render=False)
+    prepared = prepare(drop_bag, config)
+    out = tmp_path / "out"
+
+    def estimates(name: str) -> Estimates:
+        return Estimates([ObjectEstimate(1, name, "elastic", {"E": 2e4, "nu": 0.3})],
+                         stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
+
+    evaluate(prepared, estimates("older"), 6, OutputDir(out, "the older run"), config)
+    assert (out / "older.png").is_file()
+    (out / "notes.txt").write_text("the user's own file")
+    evaluate(prepared, estimates("jelly"), 6, OutputDir(out, "the newer run"), config)
+    assert sorted(p.name for p in out.iterdir()) == sorted(["jelly.png", MANIFEST, "notes.txt", "report.json",
+                                                            "report.md"])
+    assert "older" not in (out / "report.md").read_text()
+    manifest = yaml.safe_load((out / MANIFEST).read_text())
+    assert manifest["run"] == "the newer run"
+    assert sorted(manifest["files"]) == ["jelly.png", "report.json", "report.md"]
 
 
 def test_estimates_survive_the_diagnostic_status_round_trip():

@@ -14,10 +14,12 @@ from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
+from test_io_scene import alias_bomb
 from test_nodes_process import LATCHED, Listener
 
 from mosiv_ros.graph import Graph, NodeSpec, executable_path
 from mosiv_ros.identify.estimates import WARN, Estimates, ObjectEstimate
+from mosiv_ros.io.errors import MAX_SHOWN_CHARS
 from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types, stamp_to_ns
 from mosiv_ros.nodes.common import lifted_from_msg
 from mosiv_ros.pipeline import RunConfig, prepare
@@ -84,6 +86,16 @@ def test_what_if_requests_are_parsed_by_object_and_refused_with_the_reason():
     ]:
         with pytest.raises(ValueError, match=message):
             WhatIf.parse(velocities, params).check(families)
+
+
+@pytest.mark.parametrize(("levels", "problem"), [(6, "aliases expand it to more than"),
+                                                (4, "expected finite numbers, got [[")])
+def test_a_what_if_request_that_grows_without_bound_gets_a_short_error(levels, problem):
+    for velocities, params in [(alias_bomb(levels, "ball: BOMB"), ""),
+                               ("", alias_bomb(levels, "ball: {E: BOMB}"))]:
+        with pytest.raises(ValueError) as info:
+            WhatIf.parse(velocities, params)
+        assert problem in str(info.value) and len(str(info.value)) < 2 * MAX_SHOWN_CHARS
 
 
 def test_twin_what_if_rolls_from_the_first_observed_frame_with_the_request(prepared):

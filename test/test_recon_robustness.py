@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from recon_scenes import ball_points, sphere_recording, time_of, touching_pair
 from scipy.spatial import cKDTree
 
 from mosiv_ros.config import ReconstructionConfig
+from mosiv_ros.io.bag import read_recording, write_recording
 from mosiv_ros.io.recording import FrameSet
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.recon import Reconstructor, reconstruct_recording
@@ -90,6 +92,27 @@ def test_a_declared_ground_keeps_the_objects_shadow_out_of_the_floor():
     for s in spheres:
         assert np.any(free.objects[s.id].occupancy[:, 2] < 0)  # the hull reaches into the floor
         assert np.all(grounded.objects[s.id].occupancy[:, 2] >= 0)
+
+
+def test_infinite_zero_and_negative_depth_read_from_a_bag_carve_nothing_and_are_reported_once(
+        sample, tmp_path, caplog):
+    spheres, recording = sample
+    bad = copy.deepcopy(recording)
+    for camera in bad.cameras.values():
+        for frame in camera.frames:
+            frame.depth[:, ::2] = np.inf  # every second column: no return, as +inf
+            frame.depth[::4] = 0.0
+            frame.depth[1::4] = -1.0
+    with caplog.at_level(logging.WARNING, logger="mosiv_ros"):
+        read = read_recording(write_recording(bad, tmp_path / "bad"))
+    warnings = [r.getMessage() for r in caplog.records if "no usable depth" in r.getMessage()]
+    assert sorted(w.split("'")[1] for w in warnings) == sorted(bad.cameras)  # once per camera
+    assert all("% of its object pixels" in w for w in warnings)
+    clean = reconstruct_recording(recording, ReconstructionConfig())
+    for frame, reference in zip(reconstruct_recording(read, ReconstructionConfig()), clean, strict=True):
+        for s in spheres:  # the masks still carve: the objects keep their volume
+            assert len(frame.objects[s.id].occupancy) == pytest.approx(len(reference.objects[s.id].occupancy),
+                                                                       rel=0.05)
 
 
 def test_a_frame_from_an_uncalibrated_camera_is_rejected_naming_the_camera(sample):

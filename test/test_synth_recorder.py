@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -161,10 +162,23 @@ def test_the_same_seed_records_the_same_images(noisy, tmp_path):
 def test_record_command_refuses_to_overwrite_and_names_bad_fields(tmp_path, synth_pair_bag, capsys):
     scene = write_scene(tmp_path, PAIR)
     assert main(["record", str(scene), str(synth_pair_bag)]) == 2
-    assert "cannot create bag" in capsys.readouterr().err
+    assert f"output {synth_pair_bag}: already exists" in capsys.readouterr().err
     bad = pair_scene(duration=-1.0)
     assert main(["record", str(write_scene(tmp_path, bad, "bad.yaml")), str(tmp_path / "out")]) == 2
     assert "duration: must be positive, got -1.0" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_record_refuses_a_recording_too_large_to_hold_before_simulating(tmp_path, capsys, caplog):
+    # each within its own limit; together 1001 frames x 4 cameras x 16 MP images
+    scene = pair_scene(duration=100.0, cameras={**PAIR["cameras"], "resolution": [4096, 4096], "horizontal_fov": 0.3})
+    with caplog.at_level(logging.INFO):
+        assert main(["record", str(write_scene(tmp_path, scene)), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "scene.yaml: cameras.resolution: the recording would hold 563 GiB: images 563 GiB (1001 frames x 4 " \
+           "cameras x 4096 x 4096 pixels)" in err
+    assert "more than 8 GiB" in err
+    assert not any("simulating" in r.getMessage() for r in caplog.records)
     assert not (tmp_path / "out").exists()
 
 

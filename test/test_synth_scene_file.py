@@ -12,6 +12,7 @@ import trimesh
 import yaml
 from synth_scenes import PAIR, write_scene
 
+from mosiv_ros.cli import main
 from mosiv_ros.io.errors import SceneError
 from mosiv_ros.synth.layout import lay_out
 from mosiv_ros.synth.scene_file import parse_scene_file, read_scene_file
@@ -110,6 +111,8 @@ BAD = [
     ("cameras", {"placement": "ring", "count": 3, "radius": 0.5, "height": 0.3, "look_at": [5.0, 5.0, 0.0],
                  "resolution": [32, 24], "fps": 10}, "cameras", "camera 'cam0' sees none of the objects", NO_EFFECTS),
     ("cameras.resolution", [4, 4], "cameras.resolution", "at least 8 x 8"),
+    ("cameras", {**{k: v for k, v in PAIR["cameras"].items() if k != "horizontal_fov"}, "fx": 60.0, "cx": 70.0},
+     "cameras", "k[2] (cx) = 70.0: the principal point must lie inside the 64x48 image"),
     ("gripper.trajectory.0.position", [0.03, 0.0, 0.03], "gripper.trajectory", "overlaps an object at t = 0"),
     ("gripper.trajectory.1.t", 0.0, "gripper.trajectory[1].t", "keyframe times must increase"),
     ("gripper.shape", "cone", "gripper.shape", "unknown value 'cone'"),
@@ -121,6 +124,14 @@ BAD = [
     ("effects.2.camera", "cam9", "effects[2].camera", "unknown value 'cam9'"),
     ("effects.1", PAIR["effects"][0], "effects[1].type", "'wind' already given by effects[0]"),
     ("simulation.particle_spacing", 0.05, "simulation.particle_spacing", "must not exceed dx"),
+    # what would not fit in memory is refused before it is allocated
+    ("cameras.resolution", [100000, 100000], "cameras.resolution", "is 1e+10 pixels, more than 16777216 per camera"),
+    ("duration", 1e9, "duration", "1e+09 s at cameras.fps 10 is 1e+10 frames, more than 10000"),
+    ("simulation.particle_spacing", 1e-6, "simulation.particle_spacing",
+     "objects[0] ('clay') would take 8.4e+14 particles at a spacing of 1e-06 m: with the objects before it more "
+     "than 4000000"),
+    ("objects.1.radius", 5.0, "simulation.particle_spacing",
+     "objects[1] ('ball') would take 2.97e+08 particles at a spacing of 0.015 m"),
 ]
 
 
@@ -148,6 +159,16 @@ def test_missing_mesh_file_and_unreadable_yaml_are_rejected(tmp_path):
     open_mesh.export(tmp_path / "open.stl")
     with pytest.raises(SceneError, match=r"objects\[1\].file: mesh must be a non-empty, watertight"):
         load(changed("objects.1", {**ball, "file": "open.stl"}), base_dir=tmp_path)
+
+
+def test_a_scene_file_that_is_not_utf8_is_rejected_naming_it(tmp_path, capsys):
+    path = tmp_path / "scene.yaml"
+    path.write_bytes(yaml.safe_dump(PAIR).encode().replace(b"clay", b"cl\xfey"))
+    with pytest.raises(SceneError) as info:
+        read_scene_file(path)
+    assert str(info.value).startswith(f"{path}: not UTF-8 text (byte 0xfe at offset ")
+    assert main(["record", str(path), str(tmp_path / "bag")]) == 2
+    assert f"mosiv record: error: {path}: not UTF-8 text" in capsys.readouterr().err
 
 
 def test_scene_file_written_by_hand_round_trips_through_the_parser(tmp_path):

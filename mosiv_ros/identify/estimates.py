@@ -36,6 +36,8 @@ import yaml
 
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.fit import FitResult, Identifier
+from mosiv_ros.io.files import write_text
+from mosiv_ros.io.scene import load_yaml
 from mosiv_ros.sim.materials import FAMILY_PARAMS
 
 _LOG = logging.getLogger(__name__)
@@ -51,6 +53,8 @@ FORMAT = "mosiv.estimates/1"
 """``format`` of the estimates document."""
 PARAMETER = "estimates"
 """The ROS parameter that carries the estimates document in an estimates file (prediction_node's)."""
+ESTIMATES_FILE = "estimates.yaml"
+"""The estimates file's name in an output directory (``mosiv run``, ``close-loop``, ``graph``)."""
 
 Status = tuple[str, str, str, str, list[tuple[str, str]]]
 """(name, hardware_id, level, message, key-value pairs): a DiagnosticStatus as plain data."""
@@ -117,7 +121,7 @@ class Estimates:
     def from_yaml(cls, text: str) -> Estimates:
         """Estimates from the document ``to_yaml`` gives (ValueError if it is not one)."""
         try:
-            data = yaml.safe_load(text)
+            data = load_yaml(text)
         except yaml.YAMLError as error:
             raise ValueError(f"estimates are not valid YAML ({error})") from None
         if not isinstance(data, dict):
@@ -205,23 +209,25 @@ class Estimates:
         return cls(objects, scene, scene_std, int(meta.get("stamp_ns", 0)),
                    int(meta.get("frames", 0)), float(meta.get("frame_dt", 0.0)), level, message)
 
+    def file_text(self, name: str) -> str:
+        """The estimates file named ``name``: a ROS 2 parameter file whose ``estimates`` is the document."""
+        return (f"# mosiv_ros material estimates ({FORMAT}), as a ROS 2 parameter file:\n"
+                f"#   ros2 run mosiv_ros prediction_node --ros-args --params-file {name}\n"
+                f"/**:\n  ros__parameters:\n    {PARAMETER}: |\n"
+                + textwrap.indent(self.to_yaml(), " " * 6))
+
     def write(self, path: str | Path) -> Path:
-        """Write the estimates file: a ROS 2 parameter file whose ``estimates`` is the document."""
+        """Write the estimates file (``file_text``) whole, or leave the one there as it was."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(
-            f"# mosiv_ros material estimates ({FORMAT}), as a ROS 2 parameter file:\n"
-            f"#   ros2 run mosiv_ros prediction_node --ros-args --params-file {path.name}\n"
-            f"/**:\n  ros__parameters:\n    {PARAMETER}: |\n"
-            + textwrap.indent(self.to_yaml(), " " * 6))
-        return path
+        return write_text(path, self.file_text(path.name))
 
     @classmethod
     def read(cls, path: str | Path) -> Estimates:
         """Estimates from a file ``write`` wrote (ValueError naming the file if it is not one)."""
         path = Path(path)
         try:
-            data = yaml.safe_load(path.read_text())
+            data = load_yaml(path.read_text(encoding="utf-8"))
             text = data["/**"]["ros__parameters"][PARAMETER]
         except (yaml.YAMLError, TypeError, KeyError):
             raise ValueError(f"{path}: not a mosiv estimates file (a ROS 2 parameter file whose "

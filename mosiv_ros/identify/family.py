@@ -33,7 +33,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
@@ -47,6 +46,7 @@ from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.observations import Observations, View
 from mosiv_ros.identify.problem import ProblemOptions, build_problem, declared_params, object_name
+from mosiv_ros.io.files import write_text
 from mosiv_ros.io.scene import Scene, scene_to_yaml
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -287,6 +287,4 @@ class _Scores:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         trials = {k: {**asdict(t), "score": t.score if math.isfinite(t.score) else None}
                   for k, t in self.trials.items()}
-        tmp = self.path.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"signature": self.signature, "trials": trials}, indent=1))
-        os.replace(tmp, self.path)
+        write_text(self.path, json.dumps({"signature": self.signature, "trials": trials}, indent=1))

@@ -69,6 +69,7 @@ import numpy as np
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, silhouette_object_losses
 from mosiv_ros.identify.observations import Observations
+from mosiv_ros.io.files import replacing
 from mosiv_ros.lifting.lift import boundary_volume
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
@@ -772,13 +773,12 @@ class Identifier:
             return
         directory = Path(self.settings.checkpoint_dir)
         directory.mkdir(parents=True, exist_ok=True)
-        tmp = directory / (CHECKPOINT_FILE + ".tmp.npz")
-        np.savez(tmp, signature=signature, u=u, velocity=velocity, start_u=self.start[0],
-                 start_velocity=self.start[1], best_loss=self.best[0], best_u=self.best[1],
-                 best_velocity=self.best[2], best_per=self.best[3], m=adam.m, v=adam.v,
-                 t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
-                 history=json.dumps(history))
-        os.replace(tmp, directory / CHECKPOINT_FILE)
+        with replacing(directory / CHECKPOINT_FILE) as tmp:
+            np.savez(tmp, signature=signature, u=u, velocity=velocity, start_u=self.start[0],
+                     start_velocity=self.start[1], best_loss=self.best[0], best_u=self.best[1],
+                     best_velocity=self.best[2], best_per=self.best[3], m=adam.m, v=adam.v,
+                     t=adam.t, lr=adam.lr, stage=stage, iteration=iteration, failures=failures,
+                     history=json.dumps(history))
 
     def _load_checkpoint(self, signature: str):
         if not self.settings.checkpoint_dir:

@@ -54,7 +54,7 @@ from mosiv_ros.sim import (
     SimConfig,
     domain_around,
 )
-from mosiv_ros.sim.materials import FAMILY_PARAMS
+from mosiv_ros.sim.materials import FAMILY_PARAMS, in_sim_units
 
 _LOG = logging.getLogger(__name__)
 
@@ -93,17 +93,6 @@ def object_name(scene: Scene, object_id: int) -> str:
 def declared_params(item: SceneObject | None) -> dict[str, float]:
     """An object's declared parameters in the simulator's names and units (friction angle in rad)."""
     return in_sim_units(item.params if item is not None else {})
-
-
-def in_sim_units(params: Mapping[str, float]) -> dict[str, float]:
-    """User-facing material parameters in the simulator's names and units.
-
-    A friction angle given as ``friction_angle_deg`` (degrees) becomes ``friction_angle`` (rad).
-    """
-    known = dict(params)
-    if "friction_angle_deg" in known:  # the user-facing unit of a friction angle
-        known["friction_angle"] = float(np.radians(known.pop("friction_angle_deg")))
-    return known
 
 
 def views_of(recording: Recording) -> list[View]:

@@ -21,7 +21,9 @@ Layout, per camera ``<cam>``: ``/<cam>/color/image_raw`` (rgb8), ``/<cam>/color/
   ``world`` to the images' ``header.frame_id`` (``<cam>_optical`` if empty);
 - gripper poses are expressed in ``world`` through the same static transforms;
 - the message count of each topic must match ``metadata.yaml`` (a truncated storage file is an
-  error, never silently fewer frames).
+  error, never silently fewer frames);
+- an MCAP chunk that carries a checksum must match it (``write_recording`` writes them,
+  ``io.mcap``; a chunk without one, as in bags written before, is read unchecked).
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ from rosbags.rosbag2 import (
     WriterError,
 )
 
-from mosiv_ros.io.errors import BagError, MessageError, SceneError
+from mosiv_ros.io.errors import BagError, MessageError, SceneError, not_utf8, shown
+from mosiv_ros.io.mcap import add_chunk_crcs, chunk_crcs
 from mosiv_ros.io.messages import (
     camera_info_from_msg,
     camera_info_to_msg,
@@ -73,7 +76,7 @@ from mosiv_ros.io.messages import (
     transform_to_msg,
 )
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
-from mosiv_ros.io.scene import SCENE_KEY, Scene, parse_scene, scene_to_yaml
+from mosiv_ros.io.scene import SCENE_KEY, Scene, load_yaml, parse_scene, scene_to_yaml
 from mosiv_ros.io.streams import CameraFrameAssembler
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 
@@ -212,15 +215,35 @@ def read_custom_data(path: str | Path) -> dict[str, str]:
     path = Path(path)
     _check_bag_dir(path)
     try:
-        document = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
+        document = load_yaml((path / "metadata.yaml").read_text(encoding="utf-8"))
         custom = document["rosbag2_bagfile_information"].get("custom_data") or {}
+    except UnicodeDecodeError as exc:
+        raise BagError(path, None, f"metadata.yaml: {not_utf8(exc)}") from None
     except (OSError, yaml.YAMLError, KeyError, TypeError, AttributeError) as exc:
         raise BagError(
             path, None, f"unreadable metadata.yaml: {type(exc).__name__}: {exc}"
         ) from None
     if not isinstance(custom, dict):
-        raise BagError(path, None, f"metadata.yaml custom_data is not a mapping: {custom!r}")
+        raise BagError(path, None, f"metadata.yaml custom_data is not a mapping: {shown(custom)}")
     return {str(key): str(value) for key, value in custom.items()}
+
+
+def chunk_checksums(path: str | Path) -> tuple[int, int] | None:
+    """(MCAP chunks with a CRC32, MCAP chunks) over the bag's storage files; None if not MCAP."""
+    path = Path(path)
+    _check_bag_dir(path)
+    files = sorted(path.glob("*.mcap"))
+    if not files:
+        return None
+    counts = [0, 0]
+    for file in files:
+        try:
+            with_crc, chunks = chunk_crcs(file)
+        except (OSError, ValueError) as exc:
+            raise BagError(path, None, f"{file.name}: cannot read its chunks: {exc}") from exc
+        counts[0] += with_crc
+        counts[1] += chunks
+    return counts[0], counts[1]
 
 
 def list_topics(path: str | Path) -> dict[str, TopicInfo]:
@@ -563,7 +586,8 @@ def write_recording(
     Messages are logged at their header stamps; camera_info goes with every image (same stamp);
     ``/tf_static`` (offered latched) holds world -> ``<cam>_optical`` at the first stamp; the
     scene goes to custom_data ``mosiv.scene``. ``compress`` zstd-compresses MCAP chunks (MCAP
-    only). An existing ``path`` is never overwritten (BagError).
+    only); every MCAP chunk carries its CRC32 (``io.mcap``). An existing ``path`` is never
+    overwritten (BagError).
     """
     path = Path(path)
     if storage not in STORAGES:
@@ -594,6 +618,8 @@ def write_recording(
         for stamp, _, topic, msgtype, make in events:
             writer.write(connections[topic], stamp, typestore.serialize_cdr(make(), msgtype))
         writer.close()
+        for file in path.glob("*.mcap"):  # rosbags writes none: a flipped bit would read as data
+            add_chunk_crcs(file)
     except BaseException:
         writer.abort()
         shutil.rmtree(path, ignore_errors=True)  # ours: Writer refuses existing paths

@@ -14,6 +14,7 @@ float64 homogeneous transforms, stamps int nanoseconds.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,7 +44,9 @@ class CameraIntrinsics:
 
     ``K`` is the 3x3 camera matrix (pixels), ``D`` the distortion coefficients of
     ``distortion_model`` (for plumb_bob: k1, k2, p1, p2, k3). Pixel centres are at integer
-    coordinates (OpenCV/ROS convention).
+    coordinates (OpenCV/ROS convention). Construction checks the calibration: positive, finite
+    focal lengths, the principal point inside the image, every value finite (ValueError naming
+    the CameraInfo field, e.g. ``k[0] (fx)``).
     """
 
     width: int
@@ -59,6 +62,25 @@ class CameraIntrinsics:
             raise ValueError(f"K: expected a 3x3 matrix, got shape {self.K.shape}")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"image size must be positive, got {self.width}x{self.height}")
+        self._check_calibration()
+
+    def _check_calibration(self) -> None:
+        """ValueError naming the CameraInfo field (``k[i]``, ``d[i]``) of an unusable calibration."""
+        K = self.K.ravel()
+        for index, name in ((0, "fx"), (4, "fy")):
+            if not (math.isfinite(K[index]) and K[index] > 0):
+                raise ValueError(f"k[{index}] ({name}) must be a positive, finite number of pixels, "
+                                 f"got {K[index]}")
+        for index, name, size in ((2, "cx", self.width), (5, "cy", self.height)):
+            if not -0.5 <= K[index] <= size - 0.5:  # False for NaN too
+                raise ValueError(f"k[{index}] ({name}) = {K[index]}: the principal point must lie inside "
+                                 f"the {self.width}x{self.height} image ({name} in -0.5 .. {size - 0.5})")
+        for index, value in enumerate(K):
+            if not math.isfinite(value):
+                raise ValueError(f"k[{index}] must be finite, got {value}")
+        for index, value in enumerate(self.D):
+            if not math.isfinite(value):
+                raise ValueError(f"d[{index}] (distortion) must be finite, got {value}")
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
         """Pixel coordinates (N, 2) of points (N, 3) given in the optical frame, in metres.

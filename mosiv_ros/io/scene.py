@@ -52,7 +52,7 @@ from typing import Any
 
 import yaml
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, not_utf8, shown
 
 _LOG = logging.getLogger(__name__)
 
@@ -80,12 +80,47 @@ _Loader.add_implicit_resolver(
 )
 
 
+MAX_YAML_NODES = 100_000
+"""The most nodes (scalars, lists, mappings) a YAML text the pipeline reads may expand to, an
+alias counted again at every use: far above any scene declaration, scene file, params file or
+what-if request, far below an alias bomb (a few hundred characters expanding to billions)."""
+
+
 def load_yaml(text: str) -> Any:
     """Python data of YAML ``text`` (safe), reading ``2.0e5`` and ``1e-3`` as numbers.
 
-    Raises ``yaml.YAMLError`` on invalid YAML.
+    Raises ``yaml.YAMLError`` on invalid YAML, and on YAML whose aliases expand it beyond
+    ``MAX_YAML_NODES`` nodes or that nests deeper than Python's recursion limit.
     """
-    return yaml.load(text, Loader=_Loader)  # a SafeLoader subclass
+    loader = _Loader(text)  # a SafeLoader subclass
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node, {})
+        if size > MAX_YAML_NODES:
+            raise yaml.YAMLError(f"its aliases expand it to more than {MAX_YAML_NODES} nodes "
+                                 f"({'without end' if math.isinf(size) else f'{size:.3g}'}): refused")
+        return loader.construct_document(node)
+    except RecursionError:
+        raise yaml.YAMLError("nested too deeply to read") from None
+    finally:
+        loader.dispose()
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, float]) -> float:
+    """Nodes under ``node`` with every alias expanded (inf for a node that contains itself)."""
+    key = id(node)
+    if key not in sizes:
+        sizes[key] = math.inf  # reached again while being counted: it contains itself
+        if isinstance(node, yaml.MappingNode):
+            children = [child for pair in node.value for child in pair]
+        elif isinstance(node, yaml.SequenceNode):
+            children = node.value
+        else:
+            children = []
+        sizes[key] = 1 + sum(_expanded_size(child, sizes) for child in children)
+    return sizes[key]
 
 
 def _is_number(value: object) -> bool:
@@ -117,27 +152,49 @@ class SceneObject:
         """Raise SceneError naming ``where.<field>`` if a field is invalid; normalise params."""
         prefix = f"{where}." if where else ""
         if not isinstance(self.id, int) or isinstance(self.id, bool):
-            raise SceneError(f"{prefix}id", f"expected an integer, got {self.id!r}")
+            raise SceneError(f"{prefix}id", f"expected an integer, got {shown(self.id)}")
         if not 1 <= self.id <= MAX_OBJECT_ID:
             raise SceneError(f"{prefix}id", f"{self.id} is outside 1..{MAX_OBJECT_ID}")
         if not isinstance(self.name, str) or not self.name.strip():
-            raise SceneError(f"{prefix}name", f"expected a non-empty string, got {self.name!r}")
+            raise SceneError(f"{prefix}name", f"expected a non-empty string, got {shown(self.name)}")
         if self.name == RESERVED_NAME:
             raise SceneError(f"{prefix}name", f"{RESERVED_NAME!r} is reserved: it names the scene's "
                              "own status on /mosiv/material_estimates (mosiv/scene)")
         if self.family is not None and self.family not in FAMILIES:
             raise SceneError(
                 f"{prefix}family",
-                f"unknown material family {self.family!r} (expected one of {', '.join(FAMILIES)})",
+                f"unknown material family {shown(self.family)} (expected one of {', '.join(FAMILIES)})",
             )
         if not isinstance(self.params, dict):
-            raise SceneError(f"{prefix}params", f"expected a mapping, got {self.params!r}")
+            raise SceneError(f"{prefix}params", f"expected a mapping, got {shown(self.params)}")
         for key, value in self.params.items():
             if not isinstance(key, str) or not _is_number(value) or not math.isfinite(value):
                 raise SceneError(
-                    f"{prefix}params.{key}", f"expected a finite number in SI units, got {value!r}"
+                    f"{prefix}params.{key}", f"expected a finite number in SI units, got {shown(value)}"
                 )
+        if self.params:
+            _check_material_params(self.name, self.params, f"{prefix}params")
         self.params = {k: _plain(v) for k, v in self.params.items()}
+
+
+def _check_material_params(name: str, params: dict[str, float], where: str) -> None:
+    """SceneError naming the object and the parameter that the simulator would refuse.
+
+    Known names and valid ranges are the simulator's own (``sim.materials.MATERIAL_PARAMS``),
+    checked here so that a declaration is refused when it is read, not after reconstruction.
+    """
+    from mosiv_ros.sim.materials import FRICTION_ANGLE_DEG, MATERIAL_PARAMS, in_sim_units  # Warp
+
+    specs = {spec.name: spec for spec in MATERIAL_PARAMS}
+    for key, value in params.items():
+        ((sim_name, sim_value),) = in_sim_units({key: value}).items()
+        spec = specs.get(sim_name)
+        if spec is None:
+            raise SceneError(f"{where}.{key}", f"object {shown(name)}: unknown parameter {shown(key)} "
+                             f"(known: {', '.join(specs)}, {FRICTION_ANGLE_DEG})")
+        if not spec.in_range(sim_value):
+            given = f" (given as {key} = {value:g})" if key != sim_name else ""
+            raise SceneError(f"{where}.{key}", f"{spec.out_of_range(sim_value, f'object {shown(name)}')}{given}")
 
 
 ParamValue = float | list[float] | dict[str, float]
@@ -155,9 +212,9 @@ class DeclaredEffect:
         """Raise SceneError naming ``where.<field>`` if a field is invalid; normalise params."""
         prefix = f"{where}." if where else ""
         if not isinstance(self.name, str) or not self.name.strip():
-            raise SceneError(f"{prefix}name", f"expected a non-empty string, got {self.name!r}")
+            raise SceneError(f"{prefix}name", f"expected a non-empty string, got {shown(self.name)}")
         if not isinstance(self.params, dict):
-            raise SceneError(f"{prefix}params", f"expected a mapping, got {self.params!r}")
+            raise SceneError(f"{prefix}params", f"expected a mapping, got {shown(self.params)}")
         self.params = {
             key: _effect_value(value, f"{prefix}params.{key}") for key, value in self.params.items()
         }
@@ -165,7 +222,7 @@ class DeclaredEffect:
 
 def _finite(value: object, where: str) -> float | int:
     if not _is_number(value) or not math.isfinite(value):
-        raise SceneError(where, f"expected a finite number in SI units, got {value!r}")
+        raise SceneError(where, f"expected a finite number in SI units, got {shown(value)}")
     return _plain(value)
 
 
@@ -175,14 +232,14 @@ def _effect_value(value: object, where: str) -> ParamValue:
     if isinstance(value, dict) and value:
         for name in value:
             if not isinstance(name, str) or not name:
-                raise SceneError(where, f"expected object or camera names as keys, got {name!r}")
+                raise SceneError(where, f"expected object or camera names as keys, got {shown(name)}")
         return {name: _finite(v, f"{where}.{name}") for name, v in value.items()}
     return _finite(value, where)
 
 
 def _check_ground(ground: object) -> dict[str, Any]:
     if not isinstance(ground, dict):
-        raise SceneError("ground", f"expected a mapping, got {ground!r}")
+        raise SceneError("ground", f"expected a mapping, got {shown(ground)}")
     unknown = sorted(set(ground) - set(_GROUND_KEYS), key=str)
     if unknown:
         raise SceneError(f"ground.{unknown[0]}", f"unknown key (allowed: {', '.join(_GROUND_KEYS)})")
@@ -192,7 +249,7 @@ def _check_ground(ground: object) -> dict[str, Any]:
     if "normal" in ground:
         normal = ground["normal"]
         if not isinstance(normal, list) or len(normal) != 3:
-            raise SceneError("ground.normal", f"expected 3 numbers, got {normal!r}")
+            raise SceneError("ground.normal", f"expected 3 numbers, got {shown(normal)}")
         checked["normal"] = [_finite(v, f"ground.normal[{i}]") for i, v in enumerate(normal)]
         if not any(checked["normal"]):
             raise SceneError("ground.normal", "must not be the zero vector")
@@ -205,14 +262,14 @@ def _check_ground(ground: object) -> dict[str, Any]:
 
 def _check_gripper(gripper: object) -> None:
     if not isinstance(gripper, dict):
-        raise SceneError("gripper", f"expected a mapping, got {gripper!r}")
+        raise SceneError("gripper", f"expected a mapping, got {shown(gripper)}")
     shape = gripper.get("shape")
     if not isinstance(shape, str) or not shape:
-        raise SceneError("gripper.shape", f"expected a non-empty string, got {shape!r}")
+        raise SceneError("gripper.shape", f"expected a non-empty string, got {shown(shape)}")
     if shape == "sphere":
         radius = gripper.get("radius")
         if not _is_number(radius) or not radius > 0:
-            raise SceneError("gripper.radius", f"expected a positive number (m), got {radius!r}")
+            raise SceneError("gripper.radius", f"expected a positive number (m), got {shown(radius)}")
 
 
 @dataclass
@@ -240,7 +297,7 @@ class Scene:
                 )
             if obj.name in names:
                 raise SceneError(
-                    f"{where}.name", f"name {obj.name!r} already used by objects[{names[obj.name]}]"
+                    f"{where}.name", f"name {shown(obj.name)} already used by objects[{names[obj.name]}]"
                 )
             ids[obj.id] = index
             names[obj.name] = index
@@ -254,7 +311,7 @@ class Scene:
             if effect.name in effect_names:
                 raise SceneError(
                     f"effects[{index}].name",
-                    f"name {effect.name!r} already used by effects[{effect_names[effect.name]}]",
+                    f"name {shown(effect.name)} already used by effects[{effect_names[effect.name]}]",
                 )
             effect_names[effect.name] = index
         reserved = {"version", "objects", "gripper", "ground", "effects"} & set(self.extra)
@@ -283,19 +340,19 @@ def parse_scene(yaml_text: str, source: str = "<string>") -> Scene:
     if document is None:
         return Scene()
     if not isinstance(document, dict):
-        raise SceneError("", f"expected a mapping at top level, got {document!r}", source)
+        raise SceneError("", f"expected a mapping at top level, got {shown(document)}", source)
     document = dict(document)
     try:
         version = document.pop("version", SCHEMA_VERSION)
         if version != SCHEMA_VERSION:
-            raise SceneError("version", f"unsupported schema version {version!r} (expected 1)")
+            raise SceneError("version", f"unsupported schema version {shown(version)} (expected 1)")
         raw_objects = document.pop("objects", None) or []
         if not isinstance(raw_objects, list):
-            raise SceneError("objects", f"expected a list, got {raw_objects!r}")
+            raise SceneError("objects", f"expected a list, got {shown(raw_objects)}")
         objects = [_object_from_yaml(raw, f"objects[{i}]") for i, raw in enumerate(raw_objects)]
         raw_effects = document.pop("effects", None) or []
         if not isinstance(raw_effects, list):
-            raise SceneError("effects", f"expected a list, got {raw_effects!r}")
+            raise SceneError("effects", f"expected a list, got {shown(raw_effects)}")
         effects = [_effect_from_yaml(raw, f"effects[{i}]") for i, raw in enumerate(raw_effects)]
         return Scene(
             objects=objects,
@@ -310,7 +367,7 @@ def parse_scene(yaml_text: str, source: str = "<string>") -> Scene:
 
 def _object_from_yaml(raw: object, where: str) -> SceneObject:
     if not isinstance(raw, dict):
-        raise SceneError(where, f"expected a mapping, got {raw!r}")
+        raise SceneError(where, f"expected a mapping, got {shown(raw)}")
     unknown = sorted(set(raw) - set(_OBJECT_KEYS), key=str)
     if unknown:
         raise SceneError(
@@ -325,7 +382,7 @@ def _object_from_yaml(raw: object, where: str) -> SceneObject:
 
 def _effect_from_yaml(raw: object, where: str) -> DeclaredEffect:
     if not isinstance(raw, dict):
-        raise SceneError(where, f"expected a mapping, got {raw!r}")
+        raise SceneError(where, f"expected a mapping, got {shown(raw)}")
     unknown = sorted(set(raw) - set(_EFFECT_KEYS), key=str)
     if unknown:
         raise SceneError(
@@ -380,8 +437,14 @@ def load_scene(source: str | Path) -> Scene:
             _LOG.info("%s declares no scene (no custom_data %r)", path, SCENE_KEY)
             return Scene()
         return parse_scene(text, source=f"{path} custom_data[{SCENE_KEY}]")
+    return parse_scene(read_scene_text(path), source=str(path))
+
+
+def read_scene_text(path: Path) -> str:
+    """The text of a scene file; SceneError naming it if it cannot be read or is not UTF-8."""
     try:
-        text = path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError("", not_utf8(exc), str(path)) from None
     except OSError as exc:
         raise SceneError("", f"cannot read scene file: {exc.strerror}", str(path)) from None
-    return parse_scene(text, source=str(path))

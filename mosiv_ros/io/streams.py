@@ -1,9 +1,10 @@
 """Assembly of one camera's frames from its separate topics, message by message.
 
 A camera publishes RGB, instance mask, optional depth and CameraInfo on separate topics with the
-same header stamp. ``CameraFrameAssembler`` pairs them by exact stamp and checks that their
-sizes agree with each other and with the CameraInfo. The bag reader and ``reconstruction_node``
-both use it, so a recording read from disk and one received live are assembled by one rule.
+same header stamp. ``CameraFrameAssembler`` pairs them by exact stamp, checks that their
+sizes agree with each other and with the CameraInfo, and marks unusable depth as missing. The
+bag reader and ``reconstruction_node`` both use it, so a recording read from disk and one
+received live are assembled by one rule.
 
 Not for matching frames *across* cameras (stamps differ there): see ``recording.FrameMatcher``.
 """
@@ -22,6 +23,19 @@ from mosiv_ros.io.recording import CameraIntrinsics, Frame
 LOG = logging.getLogger(__name__)
 
 KINDS = ("rgb", "mask", "depth")
+UNUSABLE_DEPTH_WARNING = 0.5
+"""Fraction of a frame's object pixels without a usable depth at which a camera is reported."""
+
+
+def usable_depth(depth: np.ndarray) -> np.ndarray:
+    """``depth`` with every non-finite or non-positive value made NaN: no return (DESIGN.md).
+
+    +inf would otherwise claim empty space all along its ray and carve objects away; 0 and
+    negative values would put surface points at or behind the camera.
+    """
+    with np.errstate(invalid="ignore"):
+        usable = np.isfinite(depth) & (depth > 0)
+    return depth if usable.all() else np.where(usable, depth, np.float32(np.nan))
 
 
 def check_frame(camera: str, frame: Frame, intrinsics: CameraIntrinsics | None) -> None:
@@ -63,7 +77,9 @@ class CameraFrameAssembler:
 
     A frame is complete when its RGB image and mask have arrived, and its depth too when
     ``expect_depth`` is set. At most ``max_pending`` incomplete stamps are kept; older ones are
-    dropped and counted in ``dropped`` (a lost message must not hold memory forever).
+    dropped and counted in ``dropped`` (a lost message must not hold memory forever). A complete
+    frame's depth is ``usable_depth``; the first frame whose object pixels mostly lack one is
+    logged as a warning (``depth_reported``).
     """
 
     camera: str
@@ -71,6 +87,7 @@ class CameraFrameAssembler:
     max_pending: int = 30
     intrinsics: CameraIntrinsics | None = None
     dropped: int = 0
+    depth_reported: bool = False
     _pending: dict[int, dict[str, np.ndarray]] = field(default_factory=dict)
 
     def add(self, kind: str, stamp_ns: int, image: np.ndarray) -> Frame | None:
@@ -87,7 +104,23 @@ class CameraFrameAssembler:
         frame = Frame(stamp_ns=stamp_ns, rgb=parts["rgb"], mask=parts["mask"],
                       depth=parts.get("depth"))
         check_frame(self.camera, frame, self.intrinsics)
+        if frame.depth is not None:
+            frame.depth = usable_depth(frame.depth)
+            self._report_depth(frame)
         return frame
+
+    def _report_depth(self, frame: Frame) -> None:
+        """Warn, once, when a frame's object pixels mostly have no usable depth."""
+        objects = frame.mask > 0
+        if self.depth_reported or not objects.any():
+            return
+        missing = float(np.mean(np.isnan(frame.depth[objects])))
+        if missing >= UNUSABLE_DEPTH_WARNING:
+            self.depth_reported = True
+            LOG.warning("camera '%s': no usable depth at %.0f%% of its object pixels at stamp %d ns "
+                        "(NaN, infinite, zero or negative values count as no return: they neither "
+                        "carve nor give surface points; reported once per camera)", self.camera,
+                        100 * missing, frame.stamp_ns)
 
     def _evict(self) -> None:
         while len(self._pending) > self.max_pending:

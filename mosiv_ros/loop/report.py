@@ -21,6 +21,9 @@
 - ``closed_scene.yaml`` (the scene declaration with the accepted effects: a ``scene`` parameter
   for prediction_node) and ``estimates.yaml`` (the closed model's estimates).
 
+``out`` is an ``io.files.OutputDir``: checked before any work, each file written whole, one
+run's files only.
+
 What it is for: the command and identify_node's option. What it is not for: the loop's logic.
 """
 
@@ -34,7 +37,9 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
+from mosiv_ros.identify.estimates import ESTIMATES_FILE
 from mosiv_ros.identify.problem import views_of
+from mosiv_ros.io.files import OutputDir
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.freeflight import MIN_FORCE, MIN_FRAMES, P_VALUE
@@ -56,6 +61,7 @@ def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None
     Its fits checkpoint under ``identify.checkpoint_dir``, by default ``out/checkpoints``: the
     same command run again resumes an interrupted loop.
     """
+    directory = OutputDir(out, f"mosiv close-loop {bag}")  # before any work: a bad place fails now
     config = config or RunConfig()
     loop = loop or LoopConfig(holdout=config.holdout)
     identify = config.identify
@@ -67,14 +73,12 @@ def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None
                           prepared.recording.gripper_poses, progress=progress,
                           reobserver=Reobserver(prepared.recording, config))
     result = closure.run()
-    return write_loop_report(out, result, prepared, config.render)
+    return write_loop_report(directory, result, prepared, config.render)
 
 
-def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | None = None,
+def write_loop_report(out: OutputDir, result: LoopResult, prepared: Prepared | None = None,
                       render: bool = False) -> dict:
     """Write the files of the module docstring; ``prepared`` adds CD/EMD and truth scores."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     truth, truth_particles = ground_truth_if_any(prepared.bag) if prepared else (None, None)
     report = {
         "verdict": result.verdict, "frames": len(result.before.analysis.times),
@@ -95,11 +99,11 @@ def write_loop_report(out: str | Path, result: LoopResult, prepared: Prepared | 
     }
     if truth is not None:
         report["truth_effects"] = truth.get("effects", [])
-    (out / "closed_scene.yaml").write_text(scene_to_yaml(result.after.scene))
-    result.after.estimates.write(out / "estimates.yaml")
+    out.write_text("closed_scene.yaml", scene_to_yaml(result.after.scene))
+    out.write_text(ESTIMATES_FILE, result.after.estimates.file_text(ESTIMATES_FILE))
     plots = _plots(out, result)
-    (out / "close_loop.json").write_text(json.dumps(jsonable(report), indent=1))
-    (out / "close_loop.md").write_text(_markdown(report, [p.name for p in plots]))
+    out.write_text("close_loop.json", json.dumps(jsonable(report), indent=1))
+    out.write_text("close_loop.md", _markdown(report, [p.name for p in plots]))
     return report
 
 
@@ -265,7 +269,7 @@ def _num(value, scale: float = 1.0) -> str:
     return "" if value is None or not np.isfinite(value) else f"{value * scale:.2f}"
 
 
-def _plots(out: Path, result: LoopResult) -> list[Path]:
+def _plots(out: OutputDir, result: LoopResult) -> list[Path]:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -288,8 +292,7 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
             axis.axvline(end, color="grey", ls=":", lw=1)
             axis.legend(fontsize=7)
         fig.tight_layout()
-        paths.append(out / f"{name}_residual.png")
-        fig.savefig(paths[-1], dpi=90)
+        paths.append(out.save_figure(f"{name}_residual.png", fig))
         plt.close(fig)
         fig, axes = plt.subplots(1, 3, figsize=(12, 3.5))
         for axis_index, axis in enumerate(axes):
@@ -300,8 +303,7 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
             axis.set(xlabel="t (s)", ylabel="m", title=f"{name}: {'xyz'[axis_index]}")
             axis.legend(fontsize=7)
         fig.tight_layout()
-        paths.append(out / f"{name}_paths.png")
-        fig.savefig(paths[-1], dpi=90)
+        paths.append(out.save_figure(f"{name}_paths.png", fig))
         plt.close(fig)
     flight = result.flight
     for k, name in enumerate(before.names):
@@ -316,8 +318,7 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
             axis.set(xlabel="t (s)", ylabel="m/s^2", title=f"{name}: free-flight a_{'xyz'[axis_index]}")
             axis.legend(fontsize=7)
         fig.tight_layout()
-        paths.append(out / f"{name}_free_flight.png")
-        fig.savefig(paths[-1], dpi=90)
+        paths.append(out.save_figure(f"{name}_free_flight.png", fig))
         plt.close(fig)
     ranked = [(i, r) for i, round_ in enumerate(result.rounds, 1) for r in round_.ranking]
     if ranked:
@@ -328,7 +329,6 @@ def _plots(out: Path, result: LoopResult) -> list[Path]:
         axis.axvline(result.config.min_explained, color="k", ls=":", lw=1)
         axis.set(xlabel="explained fraction of the residual (green: accepted)", xlim=(0, 1))
         fig.tight_layout()
-        paths.append(out / "ranking.png")
-        fig.savefig(paths[-1], dpi=90)
+        paths.append(out.save_figure("ranking.png", fig))
         plt.close(fig)
     return paths

@@ -8,7 +8,8 @@ worker thread (an object whose family the scene leaves out gets one of ``familie
 held-out error first), reporting progress on ``/diagnostics`` and in its log, then publishes
 ``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one status per object
 named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``) and writes the
-estimates to ``output_yaml`` (which prediction_node also reads). A failed fit is published as
+estimates to ``output_yaml`` (which prediction_node also reads; written whole or not at all,
+and checked writable when the node starts, as ``close_loop_dir`` is). A failed fit is published as
 ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
 silhouettes stay with the reconstruction (``mosiv run`` uses both).
 
@@ -30,6 +31,7 @@ from sensor_msgs.msg import PointCloud2
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.family import candidate_families
 from mosiv_ros.identify.run import UNITS, identify_objects
+from mosiv_ros.io.files import OutputDir, check_output_file
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.io.scene import Scene, load_scene
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -62,6 +64,11 @@ class IdentifyNode(Node):
         candidate_families(self.config.families)  # a bad list stops the node now, not after the stream
         resolve_device(self.config.device)  # a device that is not there stops the node now
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
+        # outputs that cannot be written stop the node now, not after the fit
+        if self.config.output_yaml:
+            check_output_file(self.config.output_yaml)
+        self.loop_dir = OutputDir(self.config.close_loop_dir, f"{NAME} loop closure") \
+            if self.config.close_loop else None
         self.estimates_pub = self.create_publisher(
             DiagnosticArray, "/mosiv/material_estimates", LATCHED_QOS)
         self.progress_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
@@ -166,7 +173,7 @@ class IdentifyNode(Node):
         except (LoopError, SimulationError, ValueError) as error:
             self.get_logger().error(f"loop closure failed: {error}")
             return
-        write_loop_report(self.config.close_loop_dir, result)  # the core logged the verdict
+        write_loop_report(self.loop_dir, result)  # the core logged the verdict
         self.get_logger().info(f"loop closure report written to {self.config.close_loop_dir} "
                                f"({time.monotonic() - started:.1f} s)")
 

@@ -23,8 +23,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
-from mosiv_ros.identify.problem import in_sim_units
-from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS
+from mosiv_ros.io.errors import shown
+from mosiv_ros.io.scene import load_yaml
+from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS, in_sim_units
 
 _SPECS = {spec.name: spec for spec in MATERIAL_PARAMS}
 
@@ -49,7 +50,7 @@ class WhatIf:
         for name, values in _mapping("swapped_params", params).items():
             if not isinstance(values, dict) or not values:
                 raise ValueError(f"swapped_params: {name}: expected a mapping {{parameter: value}}, "
-                                 f"got {values!r}")
+                                 f"got {shown(values)}")
             given = {str(key): _numbers(f"swapped_params: {name}.{key}", [value])[0]
                      for key, value in values.items()}
             parsed_p[name] = in_sim_units(given)
@@ -65,16 +66,16 @@ class WhatIf:
         """
         for name in [*self.velocities, *self.params]:
             if name not in families:
-                raise ValueError(f"what-if request names unknown object {name!r}; "
+                raise ValueError(f"what-if request names unknown object {shown(name)}; "
                                  f"objects: {', '.join(families)}")
         for name, values in self.params.items():
             family = families[name]
             for key, value in values.items():
                 if key not in FAMILY_PARAMS[family]:
-                    raise ValueError(f"swapped_params: {name} ({family}) has no parameter {key!r}; "
+                    raise ValueError(f"swapped_params: {name} ({family}) has no parameter {shown(key)}; "
                                      f"its parameters: {', '.join(FAMILY_PARAMS[family])}")
                 if not _SPECS[key].in_range(value):
-                    raise _SPECS[key].out_of_range(value, f"object {name!r} ({family})")
+                    raise _SPECS[key].out_of_range(value, f"object {shown(name)} ({family})")
 
     def velocity(self, identified: np.ndarray, names: Sequence[str]) -> np.ndarray:
         """The (K, 6) initial velocities: ``identified`` with the requested ones replaced."""
@@ -93,11 +94,11 @@ class WhatIf:
 
 def _mapping(what: str, text: str) -> dict:
     try:
-        data = yaml.safe_load(text) if text.strip() else {}
+        data = load_yaml(text) if text.strip() else {}
     except yaml.YAMLError as error:
         raise ValueError(f"{what}: not valid YAML ({error})") from None
     if not isinstance(data, dict):
-        raise ValueError(f"{what}: expected a mapping by object name, got {text!r}")
+        raise ValueError(f"{what}: expected a mapping by object name, got {shown(text)}")
     return {str(name): value for name, value in data.items()}
 
 
@@ -110,5 +111,5 @@ def _numbers(what: str, values: object) -> list[float]:
     except (TypeError, ValueError):
         numbers = []
     if not numbers or not all(math.isfinite(v) for v in numbers):
-        raise ValueError(f"{what}: expected finite numbers, got {values!r}")
+        raise ValueError(f"{what}: expected finite numbers, got {shown(values)}")
     return numbers

@@ -28,6 +28,7 @@ What it is not for: grid transfers (``kernels``) or external forces (``effects``
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 import warp as wp
@@ -60,6 +61,21 @@ MATERIAL_PARAMS = (
               True, families=ALL),
 )
 MATERIAL_PARAM_NAMES = tuple(spec.name for spec in MATERIAL_PARAMS)
+
+FRICTION_ANGLE_DEG = "friction_angle_deg"
+"""A friction angle as users give it, in degrees (the simulator's ``friction_angle`` is radians)."""
+
+
+def in_sim_units(params: Mapping[str, float]) -> dict[str, float]:
+    """User-facing material parameters in the simulator's names and units.
+
+    A friction angle given as ``friction_angle_deg`` (degrees) becomes ``friction_angle`` (rad).
+    """
+    known = dict(params)
+    if FRICTION_ANGLE_DEG in known:
+        known["friction_angle"] = float(np.radians(known.pop(FRICTION_ANGLE_DEG)))
+    return known
+
 
 FAMILY_PARAMS = {
     "elastic": ("E", "nu", "density", "friction"),

@@ -10,12 +10,21 @@ from __future__ import annotations
 import numpy as np
 
 
-def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
-    """Cell centres of a lattice of ``spacing`` filling the box lo..hi (N, 3)."""
+def lattice_counts(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
+    """Cells (3,) along each axis of the lattice ``lattice(lo, hi, spacing)`` fills the box with.
+
+    As floats: a caller can check a lattice too large to allocate (or to count in int64).
+    """
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")
+    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    return np.maximum(np.round(extent / spacing), 1.0)
+
+
+def lattice(lo: np.ndarray, hi: np.ndarray, spacing: float) -> np.ndarray:
+    """Cell centres of a lattice of ``spacing`` filling the box lo..hi (N, 3)."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    counts = np.maximum(np.round((hi - lo) / spacing).astype(int), 1)
+    counts = lattice_counts(lo, hi, spacing).astype(int)
     start = (lo + hi) / 2 - (counts - 1) * spacing / 2
     axes = [start[a] + spacing * np.arange(counts[a]) for a in range(3)]
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)

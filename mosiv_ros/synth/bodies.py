@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.errors import SceneError
 from mosiv_ros.sim import sampling
-from mosiv_ros.synth.scene_file import GripperSpec, ObjectSpec
+from mosiv_ros.synth.scene_file import MAX_PARTICLES, GripperSpec, ObjectSpec
 
 TEXTURE_SHADE = 0.6  # brightness of the checker texture's dark squares
 _PAIRS_PER_BATCH = 250_000  # (point, triangle) pairs of a winding-number batch
@@ -72,10 +72,21 @@ class Body:
         self.rotation = Rotation.from_quat(self.spec.orientation).as_matrix()
 
     @classmethod
-    def sample(cls, obj: ObjectSpec, spacing: float, where: str) -> Body:
-        """Fill ``obj``'s shape with a lattice of ``spacing``; SceneError if it is too small."""
+    def sample(cls, obj: ObjectSpec, spacing: float, where: str, budget: float) -> Body:
+        """Fill ``obj``'s shape with a lattice of ``spacing``; SceneError if it is too small.
+
+        Also a SceneError, before anything is allocated, when the lattice that the shape is cut
+        from would hold more than ``budget`` points (what ``MAX_PARTICLES`` leaves).
+        """
         s = obj.size
-        triangles = None
+        triangles = load_mesh(obj, where) if obj.shape == "mesh" else None
+        lo, hi = _bounds(obj, triangles)
+        points = float(np.prod(sampling.lattice_counts(lo, hi, spacing)))
+        if points > budget:
+            raise SceneError("simulation.particle_spacing",
+                             f"{where} ({obj.name!r}) would take {points:.3g} particles at a spacing of "
+                             f"{spacing:g} m: with the objects before it more than {MAX_PARTICLES} "
+                             "(raise simulation.particle_spacing or make the object smaller)")
         if obj.shape == "box":
             rest, volume = sampling.box(np.zeros(3), s["size"] / 2, spacing)
         elif obj.shape == "sphere":
@@ -85,9 +96,7 @@ class Body:
         elif obj.shape == "torus":
             rest, volume = sampling.torus(np.zeros(3), s["major_radius"], s["minor_radius"], spacing)
         else:
-            triangles = load_mesh(obj, where)
-            corners = triangles.reshape(-1, 3)
-            lattice = sampling.lattice(corners.min(axis=0), corners.max(axis=0), spacing)
+            lattice = sampling.lattice(lo, hi, spacing)
             rest, volume = lattice[winding_number(lattice, triangles) > 0.5], spacing**3
         if len(rest) < 8:
             raise SceneError(where, f"only {len(rest)} particles fit in this {obj.shape} at a spacing of "
@@ -127,6 +136,24 @@ class Body:
             ring = np.linalg.norm(p[:, :2], axis=1) - s["major_radius"]
             return ring**2 + p[:, 2] ** 2 < s["minor_radius"] ** 2
         return winding_number(p, self.triangles) > 0.5
+
+
+def _bounds(obj: ObjectSpec, triangles: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) in the object's frame of the box its sampling lattice fills (as ``sampling``'s)."""
+    s = obj.size
+    if obj.shape == "mesh":
+        corners = triangles.reshape(-1, 3)
+        return corners.min(axis=0), corners.max(axis=0)
+    if obj.shape == "box":
+        extent = np.asarray(s["size"]) / 2
+    elif obj.shape == "sphere":
+        extent = np.full(3, s["radius"])
+    elif obj.shape == "cylinder":
+        extent = np.array([s["radius"], s["radius"], s["height"] / 2])
+    else:  # torus
+        reach = s["major_radius"] + s["minor_radius"]
+        extent = np.array([reach, reach, s["minor_radius"]])
+    return -extent, extent
 
 
 def gripper_points(gripper: GripperSpec, spacing: float) -> np.ndarray:

@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, shown
 from mosiv_ros.io.scene import DeclaredEffect
 from mosiv_ros.sim import BUILTIN_EFFECTS, Effect, Gravity, Ground
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
@@ -125,7 +125,7 @@ def check_unique(effects: list[EffectSpec]) -> None:
     for index, effect in enumerate(effects):
         if effect.type in seen:
             raise SceneError(f"effects[{index}].type",
-                             f"{effect.type!r} already given by effects[{seen[effect.type]}]")
+                             f"{shown(effect.type)} already given by effects[{seen[effect.type]}]")
         seen[effect.type] = index
 
 

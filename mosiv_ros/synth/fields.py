@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, shown
 
 MISSING: Any = object()
 """Default of a required key."""
@@ -30,7 +30,7 @@ class Fields:
 
     def __init__(self, raw: object, where: str) -> None:
         if not isinstance(raw, dict):
-            raise SceneError(where, f"expected a mapping, got {raw!r}")
+            raise SceneError(where, f"expected a mapping, got {shown(raw)}")
         self.raw = raw
         self.where = where
         self.asked: list[str] = []
@@ -70,7 +70,7 @@ class Fields:
         """An integer >= ``lower``."""
         value = self.get(key, default)
         if not isinstance(value, int) or isinstance(value, bool):
-            raise SceneError(self.path(key), f"expected an integer, got {value!r}")
+            raise SceneError(self.path(key), f"expected an integer, got {shown(value)}")
         if value < lower:
             raise SceneError(self.path(key), f"must be >= {lower}, got {value}")
         return value
@@ -84,16 +84,16 @@ class Fields:
         """A non-empty string, optionally one of ``choices``."""
         value = self.get(key, default)
         if not isinstance(value, str) or not value.strip():
-            raise SceneError(self.path(key), f"expected a non-empty string, got {value!r}")
+            raise SceneError(self.path(key), f"expected a non-empty string, got {shown(value)}")
         if choices is not None and value not in choices:
-            raise SceneError(self.path(key), f"unknown value {value!r} (expected one of {', '.join(choices)})")
+            raise SceneError(self.path(key), f"unknown value {shown(value)} (expected one of {', '.join(choices)})")
         return value
 
     def boolean(self, key: str, default: Any = MISSING) -> bool:
         """True or false."""
         value = self.get(key, default)
         if not isinstance(value, bool):
-            raise SceneError(self.path(key), f"expected true or false, got {value!r}")
+            raise SceneError(self.path(key), f"expected true or false, got {shown(value)}")
         return value
 
     def section(self, key: str, default: Any = MISSING) -> Fields:
@@ -104,7 +104,7 @@ class Fields:
         """(field name, raw value) of each element of the list under ``key``."""
         value = self.get(key, default)
         if not isinstance(value, list):
-            raise SceneError(self.path(key), f"expected a list, got {value!r}")
+            raise SceneError(self.path(key), f"expected a list, got {shown(value)}")
         return [(f"{self.path(key)}[{i}]", item) for i, item in enumerate(value)]
 
     def done(self, what: str = "") -> None:
@@ -125,7 +125,7 @@ def check_number(
 ) -> float:
     """``value`` as a float if it is a finite number meeting the bounds; SceneError otherwise."""
     if not is_number(value) or not math.isfinite(value):
-        raise SceneError(where, f"expected a finite number, got {value!r}")
+        raise SceneError(where, f"expected a finite number, got {shown(value)}")
     if positive and not value > 0:
         raise SceneError(where, f"must be positive, got {value}")
     if (lower is not None and value < lower) or (upper is not None and value > upper):
@@ -139,5 +139,5 @@ def check_number(
 def check_vector(value: object, where: str, size: int, *, positive: bool = False) -> np.ndarray:
     """``value`` as a float64 array if it is a list of ``size`` finite numbers."""
     if not isinstance(value, list | tuple) or len(value) != size:
-        raise SceneError(where, f"expected a list of {size} numbers, got {value!r}")
+        raise SceneError(where, f"expected a list of {size} numbers, got {shown(value)}")
     return np.array([check_number(v, f"{where}[{i}]", positive=positive) for i, v in enumerate(value)])

@@ -21,7 +21,7 @@ from mosiv_ros.io.errors import SceneError
 from mosiv_ros.sim import Collider, Ground
 from mosiv_ros.synth.bodies import Body, gripper_contains
 from mosiv_ros.synth.effects import simulator_ground
-from mosiv_ros.synth.scene_file import SceneSpec
+from mosiv_ros.synth.scene_file import MAX_PARTICLES, SceneSpec
 
 _LOG = logging.getLogger(__name__)
 
@@ -71,7 +71,10 @@ def lay_out(spec: SceneSpec) -> Layout:
 
 def _lay_out(spec: SceneSpec) -> Layout:
     spacing = spec.simulation.particle_spacing
-    bodies = [Body.sample(obj, spacing, f"objects[{i}]") for i, obj in enumerate(spec.objects)]
+    bodies: list[Body] = []
+    for i, obj in enumerate(spec.objects):  # each refused before it is allocated past the limit
+        budget = MAX_PARTICLES - sum(len(body.rest) for body in bodies)
+        bodies.append(Body.sample(obj, spacing, f"objects[{i}]", budget))
     ground = simulator_ground(spec.effects, spec.ground.height)
     normal = np.asarray(ground.normal) / np.linalg.norm(ground.normal)
     for i, body in enumerate(bodies):

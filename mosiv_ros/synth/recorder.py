@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.bag import write_recording
-from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.files import check_new_path
 from mosiv_ros.io.recording import Camera, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.progress import Progress
@@ -44,7 +44,7 @@ from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration,
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
 from mosiv_ros.synth.layout import Layout, lay_out
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
-from mosiv_ros.synth.scene_file import SceneSpec
+from mosiv_ros.synth.scene_file import SceneSpec, check_recording_size
 
 _LOG = logging.getLogger(__name__)
 
@@ -57,12 +57,13 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
            progress: Progress | None = None) -> Path:
     """Record ``spec`` as a new bag directory ``out`` (must not exist) with its sidecars.
 
-    Raises SceneError for a bad scene, ``mosiv_ros.sim`` errors when the simulation cannot run or
-    diverges, BagError when the bag cannot be written.
+    Raises OutputError when ``out`` exists or cannot be created (checked first), SceneError for a
+    bad scene, ``mosiv_ros.sim`` errors when the simulation cannot run or diverges, BagError when
+    the bag cannot be written.
     """
-    if Path(out).exists():  # before minutes of simulation, not after
-        raise BagError(out, None, "cannot create bag: the path already exists")
+    check_new_path(out)  # before minutes of simulation, not after
     layout = lay_out(spec)
+    check_recording_size(spec, len(layout.x))  # before the simulation holds the particles' paths
     offsets = camera_offsets(spec.effects)
     extra = math.ceil(max([0.0, *offsets.values()]) * spec.cameras.fps)  # frames a late camera needs
     positions, settings = simulate(layout, spec.n_frames + extra, progress)

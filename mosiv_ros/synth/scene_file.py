@@ -79,9 +79,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.errors import SceneError, shown
 from mosiv_ros.io.recording import CameraIntrinsics
-from mosiv_ros.io.scene import FAMILIES, load_yaml
+from mosiv_ros.io.scene import FAMILIES, load_yaml, read_scene_text
 from mosiv_ros.sim import FAMILY_PARAMS, MATERIAL_PARAMS
 from mosiv_ros.synth import cameras as rig
 from mosiv_ros.synth.effects import EffectSpec, check_unique, parse_effect
@@ -96,6 +96,21 @@ PALETTE = ([210.0, 40.0, 35.0], [40.0, 170.0, 60.0], [45.0, 70.0, 200.0], [220.0
            [150.0, 60.0, 190.0], [30.0, 170.0, 180.0])
 """Default object colours, by mask id."""
 _SPECS = {spec.name: spec for spec in MATERIAL_PARAMS}
+
+# What one recording may ask for, checked before anything is allocated (the scene file's
+# fields are named in the error). docs/limits_io.md lists them.
+MAX_FRAMES = 10_000
+"""Most frames of a recording: duration x cameras.fps + 1."""
+MAX_IMAGE_PIXELS = 4096 * 4096
+"""Most pixels of one camera image: cameras.resolution width x height."""
+MAX_PARTICLES = 4_000_000
+"""Most particles the objects may be filled with (simulation.particle_spacing), counted on the
+lattice each shape is cut from."""
+MAX_RECORDING_BYTES = 8 * 2**30
+"""Most bytes a recording may hold before it is written: every camera's images (RGB, mask and
+depth) and the particles' paths (float32), all of which stay in memory until the end."""
+BYTES_PER_PIXEL = 3 + 2 + 4
+"""RGB, a mono16 mask (the wider one) and float32 depth, per pixel of a frame."""
 
 
 @dataclass
@@ -206,11 +221,7 @@ class SceneSpec:
 
 def read_scene_file(path: str | Path) -> SceneSpec:
     """Parse the scene file at ``path`` (no geometric checks: ``layout.lay_out`` makes them)."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SceneError("", f"cannot read scene file: {exc.strerror}", str(path)) from None
-    return parse_scene_file(text, source=str(path), base_dir=Path(path).parent)
+    return parse_scene_file(read_scene_text(Path(path)), source=str(path), base_dir=Path(path).parent)
 
 
 def parse_scene_file(text: str, source: str = "<string>", base_dir: Path | None = None) -> SceneSpec:
@@ -228,12 +239,12 @@ def parse_scene_file(text: str, source: str = "<string>", base_dir: Path | None 
 def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     version = top.get("version", 1)
     if version != 1:
-        raise SceneError("version", f"unsupported scene file version {version!r} (expected 1)")
+        raise SceneError("version", f"unsupported scene file version {shown(version)} (expected 1)")
     name = top.string("name", Path(source).stem if source != "<string>" else "scene")
     duration = top.number("duration", positive=True)
     start = top.get("start_stamp_ns", DEFAULT_START_NS)
     if not isinstance(start, int) or isinstance(start, bool) or start < 0:
-        raise SceneError("start_stamp_ns", f"expected a non-negative integer, got {start!r}")
+        raise SceneError("start_stamp_ns", f"expected a non-negative integer, got {shown(start)}")
     entries = top.items("objects")
     if not entries:
         raise SceneError("objects", "a scene needs at least one object")
@@ -242,7 +253,7 @@ def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     for index, obj in enumerate(objects):
         if names.index(obj.name) != index:
             raise SceneError(f"objects[{index}].name",
-                             f"name {obj.name!r} already used by objects[{names.index(obj.name)}]")
+                             f"name {shown(obj.name)} already used by objects[{names.index(obj.name)}]")
     ground_fields = top.section("ground", {})
     ground = GroundSpec(ground_fields.number("height", 0.0),
                         ground_fields.number("half_size", GroundSpec.half_size, positive=True))
@@ -257,14 +268,37 @@ def _scene(top: Fields, source: str, base_dir: Path) -> SceneSpec:
     noise_fields.done()
     simulation = _simulation(top.section("simulation", {}))
     top.done()
-    return SceneSpec(name, source, duration, start, objects, ground, gripper, cameras, effects, noise,
+    spec = SceneSpec(name, source, duration, start, objects, ground, gripper, cameras, effects, noise,
                      simulation)
+    if duration * cameras.fps + 1 > MAX_FRAMES:
+        raise SceneError("duration", f"{duration:g} s at cameras.fps {cameras.fps:g} is "
+                         f"{duration * cameras.fps + 1:.3g} frames, more than {MAX_FRAMES}")
+    return spec
+
+
+def check_recording_size(spec: SceneSpec, particles: int) -> None:
+    """SceneError naming the scene file if its recording would hold more than MAX_RECORDING_BYTES.
+
+    ``particles``: how many the laid-out objects have. Made before the simulation and rendering.
+    """
+    frames, cameras = spec.n_frames + 1, len(spec.cameras.names)
+    k = spec.cameras.intrinsics
+    images = frames * cameras * k.width * k.height * (BYTES_PER_PIXEL - (0 if spec.cameras.depth else 4))
+    paths = frames * particles * 3 * 4
+    if images + paths > MAX_RECORDING_BYTES:
+        field = "cameras.resolution" if images >= paths else "simulation.particle_spacing"
+        raise SceneError(field, f"the recording would hold {(images + paths) / 2**30:.3g} GiB: images "
+                         f"{images / 2**30:.3g} GiB ({frames} frames x {cameras} cameras x {k.width} x "
+                         f"{k.height} pixels) and particle paths {paths / 2**30:.3g} GiB ({particles} "
+                         f"particles), more than {MAX_RECORDING_BYTES / 2**30:g} GiB (shorten duration, "
+                         "lower cameras.fps or cameras.resolution, or raise simulation.particle_spacing)",
+                         spec.source)
 
 
 def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
     name = f.string("name")
     if "/" in name or " " in name:
-        raise SceneError(f.path("name"), f"must not contain '/' or spaces, got {name!r}")
+        raise SceneError(f.path("name"), f"must not contain '/' or spaces, got {shown(name)}")
     shape = f.string("shape", choices=SHAPES)
     size = _size(f, shape, base_dir)
     family = f.string("family", choices=FAMILIES)
@@ -272,11 +306,11 @@ def _object(f: Fields, object_id: int, base_dir: Path) -> ObjectSpec:
     allowed = tuple(_user_name(p) for p in FAMILY_PARAMS[family])
     declared = f.get("declared_params", [])
     if not isinstance(declared, list):
-        raise SceneError(f.path("declared_params"), f"expected a list, got {declared!r}")
+        raise SceneError(f.path("declared_params"), f"expected a list, got {shown(declared)}")
     for i, key in enumerate(declared):
         if key not in allowed:
             raise SceneError(f"{f.path('declared_params')}[{i}]",
-                             f"{key!r} is not a parameter of {family} (expected one of {', '.join(allowed)})")
+                             f"{shown(key)} is not a parameter of {family} (expected one of {', '.join(allowed)})")
     orientation = f.vector("orientation", 4, [0.0, 0.0, 0.0, 1.0])
     if not np.any(orientation):
         raise SceneError(f.path("orientation"), "must be a non-zero quaternion x, y, z, w")
@@ -407,13 +441,19 @@ def _cameras(f: Fields) -> CameraSpec:
     if width < 8 or height_px < 8:
         raise SceneError(f.path("resolution"), f"must be at least 8 x 8 pixels, got {width} x {height_px}")
     if f.has("fx"):
-        intrinsics = rig.pinhole(width, height_px, fx=f.number("fx", positive=True),
-                                 fy=f.number("fy", positive=True) if f.has("fy") else None,
-                                 cx=f.number("cx") if f.has("cx") else None,
-                                 cy=f.number("cy") if f.has("cy") else None)
+        try:
+            intrinsics = rig.pinhole(width, height_px, fx=f.number("fx", positive=True),
+                                     fy=f.number("fy", positive=True) if f.has("fy") else None,
+                                     cx=f.number("cx") if f.has("cx") else None,
+                                     cy=f.number("cy") if f.has("cy") else None)
+        except ValueError as exc:  # the calibration check of CameraIntrinsics (k[2] is cx, ...)
+            raise SceneError(f.where, str(exc)) from None
     else:
         fov = f.number("horizontal_fov", 0.9, lower=0.05, upper=3.0)
         intrinsics = rig.pinhole(width, height_px, horizontal_fov=fov)
+    if width * height_px > MAX_IMAGE_PIXELS:
+        raise SceneError(f.path("resolution"), f"{width} x {height_px} is {width * height_px:.3g} pixels, "
+                         f"more than {MAX_IMAGE_PIXELS} per camera image")
     spec = CameraSpec(names, poses, intrinsics, f.number("fps", positive=True), f.boolean("depth", True),
                       placement)
     f.done(f" for {placement} placement")

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from mosiv_ros.io.files import check_new_path
 from mosiv_ros.io.scene import FAMILIES
 from mosiv_ros.progress import Progress
 from mosiv_ros.synth.layout import lay_out
@@ -151,8 +152,8 @@ def make_suite(out: str | Path, size_name: str, *, seed: int = 0, record_bags: b
 
     ``progress('scenes', done, total, 'scene')`` after each scene; ``record_progress`` goes to ``record``.
     """
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=False)
+    out = check_new_path(out)  # before any recording
+    out.mkdir(parents=True)
     (out / "scenes").mkdir()
     scenes = suite_scenes(size_name, seed)
     index = []
