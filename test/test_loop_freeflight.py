@@ -152,3 +152,28 @@ def test_a_uniform_force_is_described_by_a_constant_term_not_by_one_the_data_can
             constant += 1
             assert fit.values["force_field.w[1]"] == pytest.approx(1.5, abs=0.3)
     assert constant >= 5
+
+
+def test_frames_where_an_object_reaches_an_image_border_are_not_free():
+    # a force-free throw that enters a camera's view across its left border: carving keeps only
+    # what every camera sees, so the cube is cut off there and its centroid jumps by millimetres
+    from mosiv_ros.identify.observations import View
+
+    rotation = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # looks along +y
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = rotation, [0.0, -0.6, 0.35]
+    view = View("cam", np.array([[100.0, 0.0, 31.5], [0.0, 100.0, 47.5], [0.0, 0.0, 1.0]]), pose, 64, 96)
+    path = _path([-0.19, 0.0, 0.3], [0.5, 0.0, 1.5], lambda v: np.zeros(3), 12)
+    frames = _frames({1: path}, noise=0.0)
+    for frame in frames:  # what carving keeps: the voxels whose centres the camera sees
+        geometry = frame.objects[1]
+        uv, _ = view.project(geometry.occupancy)
+        geometry.occupancy = geometry.occupancy[uv[:, 0] >= -0.5]
+    cut = [f for f, frame in enumerate(frames) if len(frame.objects[1].occupancy) < len(CUBE)]
+    assert cut == [0, 1]  # the first two frames lose part of the cube
+    flight = free_flight(frames, [1], np.arange(12) * DT, None, G, 0.02, views=[view])
+    assert not flight.free[:2, 0].any() and flight.free[2:, 0].all()
+    assert [(s.start, s.stop) for s in flight.segments] == [(2, 12)]
+    assert not flight.significant
+    blind = free_flight(frames, [1], np.arange(12) * DT, None, G, 0.02)  # the same without cameras
+    assert blind.significant  # the cut reads as a force

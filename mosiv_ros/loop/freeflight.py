@@ -10,7 +10,10 @@ measures that force:
   floor, every other object and the gripper collider by more than ``reach``: the
   reconstruction's voxel plus the reach of the model's contact (the simulation grid's spacing:
   multi-field MPM contact acts within about a cell). Runs of at least ``MIN_FRAMES`` free frames
-  are the segments; a frame where the object is unseen ends a segment.
+  are the segments; a frame where the object is unseen ends a segment, and so does one where
+  it reaches the border of a camera's image (within a pixel and half a voxel): the carving
+  keeps only what every camera sees, so a part beyond the border is cut off and the centroid
+  jumps by millimetres, which free flight would read as a force.
 - **Noise.** Per object, the scatter of its centroid about a smooth curve (a polynomial of
   degree ``FLEXIBLE_DEGREE`` per segment and axis, whose residual with its degrees of freedom
   gives it), in quadrature with a systematic floor of ``SYSTEMATIC_SHARE`` of the pixel
@@ -384,6 +387,20 @@ def sparse_field(flight: FreeFlight, base: ForceLaw | None = None,
     return (terms, origin, fit) if terms and not flight.acts(fit) else None
 
 
+def _at_border(view: View, points: np.ndarray, voxel: float) -> bool:
+    """Whether voxels centred at ``points`` reach the border of ``view``'s image (or lie behind it).
+
+    A voxel reaches it when its centre's projection comes within a pixel plus half the voxel's
+    own footprint of the image's edge.
+    """
+    uv, z = view.project(points)
+    if np.any(z <= 0.0):
+        return True
+    margin = 1.0 + 0.5 * voxel * view.K[0, 0] / z
+    return bool(np.any((uv[:, 0] < margin - 0.5) | (uv[:, 0] > view.width - 0.5 - margin)
+                       | (uv[:, 1] < margin - 0.5) | (uv[:, 1] > view.height - 0.5 - margin)))
+
+
 def _bounding_radius(collider: Collider) -> float:
     if collider.shape == "sphere":
         return collider.size[0]
@@ -407,8 +424,8 @@ def free_flight(frames: Sequence[ObservedFrame], object_ids: Sequence[int], time
 
     ``times`` (F,) s since the first frame, on the colliders' clock; ``reach`` (m) the clearance
     that counts as free. A collider counts by its bounding sphere. ``views``: the cameras, whose
-    median pixel footprint at the objects sets the systematic noise floor (without them: the
-    voxel).
+    image borders end free flight and whose median pixel footprint at the objects sets the
+    systematic noise floor (without them: the voxel).
     """
     observed = observed_centroids(frames, object_ids)
     F, K = observed.shape[:2]
@@ -435,7 +452,7 @@ def free_flight(frames: Sequence[ObservedFrame], object_ids: Sequence[int], time
                 centre = collider.pose(float(times[f]))[0]
                 clear = min(clear, float(np.linalg.norm(p - centre, axis=1).min()) - half
                             - _bounding_radius(collider))
-            free[f, k] = clear > reach
+            free[f, k] = clear > reach and not any(_at_border(view, p, 2 * half) for view in views)
     segments = []
     for k in range(K):
         f = 0
