@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import signal
 import subprocess
 import time
 
@@ -197,6 +199,30 @@ def test_prediction_node_refuses_parameters_out_of_range_with_the_reason_and_kee
             node.wait_for_line("(0.50..0.90 s after the first observed frame)", 120)  # horizon 0.4 s
     finally:
         listener.close()
+
+
+@pytest.mark.slow
+def test_a_node_busy_in_a_long_callback_stops_on_sigterm_within_seconds(drop_bag, prepared, tmp_path):
+    path = _estimates(prepared.frames[0].stamp_ns).write(tmp_path / "material_estimates.yaml")
+    listener = Listener("test_stopper")
+    try:
+        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+        cloud = prepared.lifted.to_cloud()
+        publisher.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id,
+                                            prepared.frames[0].stamp_ns, cloud.frame_id, cloud.fields))
+        spec = NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 60.0, "device": "cpu"})
+        with Graph([spec], params_file=path, sink=None) as graph:
+            node = graph.nodes["prediction_node"]
+            assert listener.wait_for(lambda: publisher.get_subscription_count() > 0, 20)
+            time.sleep(3.0)  # the particles are in: the callback rolls a minute of motion out
+            assert not any("predicted" in line for line in node.lines)
+            began = time.monotonic()
+            os.killpg(node.process.pid, signal.SIGTERM)  # it ran on until the rollout ended
+            code = node.process.wait(120)
+            stopped = time.monotonic() - began
+    finally:
+        listener.close()
+    assert code == 0 and stopped < 5, (code, stopped, node.tail())
 
 
 @pytest.mark.slow

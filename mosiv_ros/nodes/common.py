@@ -9,6 +9,7 @@ import dataclasses
 import logging
 import signal
 import sys
+import threading
 import typing
 from collections.abc import Callable, Sequence
 from functools import partial
@@ -152,6 +153,13 @@ class CoreLogHandler(logging.Handler):
             self.handleError(record)
 
 
+class _Stopped(BaseException):
+    """SIGINT or SIGTERM while the node spins: ends the callback running.
+
+    Not an Exception: no ``except Exception`` in the callback may swallow it.
+    """
+
+
 def main_for(
     node_name: str,
     config_type: type,
@@ -165,11 +173,20 @@ def main_for(
     if "-h" in user_args or "--help" in user_args:
         print_help(node_name, config_type, summary)
         return 0
-    # rclpy's own handler shuts the context down on Ctrl-C (spin then raises
-    # ExternalShutdownException) and also chains to Python's handler. Python's default raises
-    # KeyboardInterrupt at whatever line runs next, which may be the clean-up below; a no-op
-    # Python handler leaves the stop to rclpy alone, so the node always exits 0.
-    signal.signal(signal.SIGINT, lambda _signum, _frame: None)
+    # rclpy's own handler (SIGINT, SIGTERM) shuts the context down, and spin then raises
+    # ExternalShutdownException, but only once the callback running returns: a lift or a
+    # rollout may take minutes. rclpy chains to Python's handler, which ends that callback at
+    # once (_Stopped), only while spinning: Python's default would raise KeyboardInterrupt at
+    # whatever line runs next, the clean-up below included, and SIGTERM's would kill the node.
+    spinning = threading.Event()
+
+    def stop(_signum: int, _frame: object) -> None:
+        if spinning.is_set():
+            spinning.clear()  # once: the clean-up that follows runs to its end
+            raise _Stopped
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, stop)
     rclpy.init(args=argv)
     core = logging.getLogger("mosiv_ros")  # the core's log lines go to the node's log
     handler = CoreLogHandler(node_name)
@@ -185,11 +202,15 @@ def main_for(
         executor.add_node(node)
         node.get_logger().info(f"{node_name} ready")
         done = getattr(node, "done", None)
-        if done is None:
-            executor.spin()
-        else:
-            executor.spin_until_future_complete(done)
-    except ExternalShutdownException:
+        spinning.set()
+        try:
+            if done is None:
+                executor.spin()
+            else:
+                executor.spin_until_future_complete(done)
+        finally:
+            spinning.clear()
+    except (ExternalShutdownException, _Stopped):
         pass
     except Exception as error:
         if not rclpy.ok():
