@@ -24,13 +24,11 @@ from pathlib import Path
 import yaml
 
 from mosiv_ros.config import STAGE_CONFIGS, describe
-from mosiv_ros.graph import GraphError
+from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError
 
 LOG = logging.getLogger("mosiv")
 STAGE_NODES = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
-MAX_DOMAIN_ID = 232
-"""The largest ROS domain id (ROS 2 documentation: the DDS port range caps it)."""
 
 
 def default_parameters_yaml() -> str:

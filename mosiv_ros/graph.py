@@ -61,9 +61,11 @@ def exit_description(code: int) -> str:
     return f"exited with code {code}"
 
 
+MAX_DOMAIN_ID = 232
+"""The largest ROS domain id (ROS 2 documentation: the DDS port range caps it)."""
 DOMAIN_IDS = range(1, 102)
-"""ROS domain ids a graph may get: 0 is every shell's default, and above 101 a participant's
-DDS ports can pass 65535 on Linux."""
+"""ROS domain ids a graph gets by default: 0 is every shell's default, and above 101 a
+participant's DDS ports can reach the ephemeral ports on Linux."""
 DOMAIN_PORTS = (7400, 250)
 """The DDS (RTPS) port mapping: domain d uses UDP ports base + gain * d up to the next domain's."""
 
@@ -87,7 +89,7 @@ def domains_in_use(udp_tables: Sequence[str | Path] = ("/proc/net/udp", "/proc/n
     return used
 
 
-def free_domain_id(rng: random.Random | None = None) -> int:
+def free_domain_id() -> int:
     """A ROS domain id of DOMAIN_IDS that no DDS participant on this host uses; GraphError if none.
 
     One at random: two graphs started at once should not both take the lowest.
@@ -96,7 +98,7 @@ def free_domain_id(rng: random.Random | None = None) -> int:
     if not free:
         raise GraphError(f"every ROS domain {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1} has a DDS "
                          "participant on this host; choose one with --domain-id")
-    return (rng or random.Random()).choice(free)
+    return random.choice(free)
 
 
 def package_prefix() -> Path:
