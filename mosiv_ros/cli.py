@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -23,7 +24,7 @@ from pathlib import Path
 import yaml
 
 from mosiv_ros.config import STAGE_CONFIGS, describe
-from mosiv_ros.graph import GraphError
+from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
 LOG = logging.getLogger("mosiv")
@@ -246,6 +247,33 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def graph_domain(choice: str, environ: dict[str, str]) -> tuple[dict[str, str], str]:
+    """The environment a graph's nodes get for ``--domain-id`` ``choice``, and a line saying so.
+
+    "auto": a ROS domain no DDS participant on this host uses, discovery on this host only (no
+    other graph's messages leak in, and this one's stay here); a number: that domain (the
+    discovery range as the environment sets it); "env": the environment's ROS_DOMAIN_ID and
+    ROS_AUTOMATIC_DISCOVERY_RANGE, as they are.
+    """
+    from mosiv_ros.graph import free_domain_id
+
+    if choice == "auto":
+        env = {"ROS_DOMAIN_ID": str(free_domain_id()), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
+        how = "a free one, chosen with --domain-id auto"
+    elif choice == "env":
+        env = {}
+        how = "the environment's, chosen with --domain-id env"
+    elif choice.isdigit() and 0 <= int(choice) <= MAX_DOMAIN_ID:
+        env = {"ROS_DOMAIN_ID": str(int(choice))}
+        how = "chosen with --domain-id"
+    else:
+        raise ValueError(f"--domain-id: expected auto, env or a domain id 0..{MAX_DOMAIN_ID}, got {choice!r}")
+    merged = {**environ, **env}
+    line = (f"ROS domain {merged.get('ROS_DOMAIN_ID') or '0'} ({how}), discovery range "
+            f"{merged.get('ROS_AUTOMATIC_DISCOVERY_RANGE') or 'SUBNET'}")
+    return env, line
+
+
 def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
@@ -255,6 +283,8 @@ def cmd_graph(args: argparse.Namespace) -> int:
     from mosiv_ros.io.files import OutputDir
     from mosiv_ros.pipeline import evaluate, fit_window, prepare
 
+    domain, line = graph_domain(args.domain_id, dict(os.environ))
+    print(f"mosiv graph: {line}", flush=True)  # first: where to look (rviz, ros2 topic) and why
     start = time.perf_counter()
     bag = str(Path(args.bag).resolve())
     out = OutputDir(Path(args.out).resolve(), f"mosiv graph {bag}")  # before any work
@@ -267,11 +297,13 @@ def cmd_graph(args: argparse.Namespace) -> int:
                              **overrides.get(name, {})}) for name in STAGE_NODES]
     specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
                                               "wait_for_subscribers": 1}))
-    with Graph(specs, params_file=args.params_file) as graph:
-        try:  # a node that fails on the way ends the wait at once, saying which and how
+    with Graph(specs, params_file=args.params_file, env=domain) as graph:
+        try:  # a node that fails on the way, or says so, ends the wait at once: which and how
             graph.wait_for_line("identify_node", "identification done",
-                                args.timeout - (time.perf_counter() - start))
-            graph.wait_for_line("prediction_node", "predicted", 120)
+                                args.timeout - (time.perf_counter() - start),
+                                failures=("identification failed",))
+            graph.wait_for_line("prediction_node", "predicted", 120,
+                                failures=("no prediction", "prediction failed"))
             code = graph.nodes["bag_replay_node"].process.wait(
                 max(1.0, args.timeout - (time.perf_counter() - start)))
         except (subprocess.TimeoutExpired, GraphError) as error:
@@ -320,6 +352,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help="where identify_node writes the estimates and the report goes")
     graph.add_argument("--holdout", type=float, default=0.3,
                        help="fraction of the frames kept out of the fit and scored as future")
+    graph.add_argument("--domain-id", default=os.environ.get("MOSIV_GRAPH_DOMAIN_ID", "auto"),
+                       help="ROS domain of the nodes: 'auto' (a domain no DDS participant on this "
+                            "host uses, discovery on this host only), 'env' (ROS_DOMAIN_ID and "
+                            "ROS_AUTOMATIC_DISCOVERY_RANGE as the environment sets them) or a "
+                            f"domain id 0..{MAX_DOMAIN_ID} (default: $MOSIV_GRAPH_DOMAIN_ID, else auto)")
     graph.set_defaults(func=cmd_graph)
 
     info = sub.add_parser("info", help="summarise a recording")

@@ -1,7 +1,11 @@
 """One configuration dataclass per stage, shared by the command line, the ROS nodes and the tests.
 
 Each field is a node parameter of the same name: its default is the parameter's default (also
-written in ``config/mosiv.yaml``) and its ``help`` metadata is the parameter's description.
+written in ``config/mosiv.yaml``), its ``help`` metadata is the parameter's description, its
+``range`` metadata, where it has one, the closed interval a number (or each number of a list)
+must lie in (the nodes declare it as the parameter's range and refuse other values, at start and
+at run time, as ``mosiv run`` refuses them in a params file: ``check``), and ``run_time`` says
+whether the node takes a change while it runs (it refuses a change of any other parameter).
 Values are in SI units (seconds, metres) unless the name says otherwise.
 
 This module only describes settings; it does not read files or talk to ROS.
@@ -14,11 +18,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-def _param(default: Any, help: str) -> Any:
-    """A dataclass field carrying the parameter description."""
+def _param(default: Any, help: str, low: float | None = None, high: float | None = None,
+           run_time: bool = False) -> Any:
+    """A dataclass field: the parameter's description, range [low, high] if any, ``run_time``.
+
+    ``run_time``: the node takes a change of the parameter while it runs.
+    """
+    metadata = {"help": help, "run_time": run_time}
+    if low is not None:
+        metadata["range"] = (low, high)
     if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata={"help": help})
-    return field(default=default, metadata={"help": help})
+        return field(default_factory=lambda: list(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
 SCENE_HELP = (
@@ -32,14 +43,24 @@ class ReplayConfig:
     """bag_replay_node: publish a recorded bag's topics with their recorded stamps."""
 
     bag: str = _param("", "Path of the rosbag2 directory to replay (required).")
-    rate: float = _param(1.0, "Playback rate: 1.0 = real time, 2.0 = twice as fast, 0 = as fast as possible.")
+    rate: float = _param(
+        1.0, "Playback rate: 1.0 = real time, 2.0 = twice as fast, 0 = as fast as possible.",
+        0.0, 100.0)
     topics: list[str] = _param([], "Topics to replay; empty = every topic in the bag.")
-    start_delay: float = _param(0.5, "Seconds to wait after creating the publishers before the first message.")
-    wait_for_subscribers: int = _param(0, "Wait until every image topic has this many subscribers before starting.")
-    wait_timeout: float = _param(10.0, "Longest wait for subscribers, seconds; then replay anyway with a warning.")
+    start_delay: float = _param(
+        0.5, "Seconds to wait after creating the publishers before the first message.",
+        0.0, 60.0)
+    wait_for_subscribers: int = _param(
+        0, "Wait until every image topic has this many subscribers before starting.",
+        0, 100)
+    wait_timeout: float = _param(
+        10.0, "Longest wait for subscribers, seconds; then replay anyway with a warning.",
+        0.0, 3600.0)
     loop: bool = _param(False, "Replay the bag again from the start when it ends.")
     exit_when_done: bool = _param(True, "Shut the node down once the bag has been replayed.")
-    linger: float = _param(2.0, "Seconds to keep serving latched topics after the last message before exiting.")
+    linger: float = _param(
+        2.0, "Seconds to keep serving latched topics after the last message before exiting.",
+        0.0, 3600.0)
 
 
 @dataclass
@@ -47,21 +68,23 @@ class ReconstructionConfig:
     """reconstruction_node: group camera frames by stamp, per-object geometry per frame (stage 1)."""
 
     cameras: list[str] = _param([], "Camera names (topic prefixes); empty = discover /<cam>/color/image_raw topics.")
-    sync_tolerance: float = _param(0.005, "Largest stamp difference, seconds, between frames of one frame set.")
+    sync_tolerance: float = _param(
+        0.005, "Largest stamp difference, seconds, between frames of one frame set.",
+        0.0, 1.0)
     use_depth: bool = _param(True, "Fuse /<cam>/depth/image_rect when the recording has it.")
-    voxel_size: float = _param(0.005, "Edge of the reconstruction voxel grid, metres.")
+    voxel_size: float = _param(0.005, "Edge of the reconstruction voxel grid, metres.", 5.0e-4, 0.5)
     workspace: list[float] = _param(
         [], "Box to reconstruct in, world frame, metres: [xmin, ymin, zmin, xmax, ymax, zmax]; "
-        "empty = a cube around the point the cameras look at, reaching to the farthest camera.")
+        "empty = a cube around the point the cameras look at, reaching to the farthest camera.", -1000.0, 1000.0)
     min_views: int = _param(
-        0, "Cameras whose image a voxel must project into to be kept; 0 = every camera of the frame set.")
+        0, "Cameras whose image a voxel must project into to be kept; 0 = every camera of the frame set.", 0, 100)
     depth_tolerance: float = _param(
         0.0025, "Depth carving margin, metres (about half a voxel plus the depth noise): a voxel "
-        "nearer than depth - margin is empty space.")
+        "nearer than depth - margin is empty space.", 0.0, 0.5)
     mask_filter: int = _param(
-        3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).")
+        3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).", 0, 31)
     partial_set_timeout: float = _param(
-        0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.")
+        0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.", 0.0, 60.0)
     scene: str = _param("", SCENE_HELP)
 
 
@@ -70,22 +93,26 @@ class LiftingConfig:
     """lifting_node: fill each object's first observed frame with simulation particles (stage 2)."""
 
     particle_spacing: float = _param(
-        0.01, "Spacing of the particles that fill each object, metres (the grid is twice as coarse).")
-    boundary_band: float = _param(0.008, "Half-width of the band of boundary particles around the surface, metres.")
-    boundary_beta: float = _param(5.0e3, "Sharpness beta of the boundary volume sigmoid, 1/m (M-PhyGs Eq. 1).")
-    boundary_eps: float = _param(1.0e-4, "Floor epsilon of the boundary volume sigmoid (M-PhyGs Eq. 1).")
+        0.01, "Spacing of the particles that fill each object, metres (the grid is twice as coarse).", 0.001, 0.5)
+    boundary_band: float = _param(
+        0.008, "Half-width of the band of boundary particles around the surface, metres.",
+        0.0, 0.5)
+    boundary_beta: float = _param(
+        5.0e3, "Sharpness beta of the boundary volume sigmoid, 1/m (M-PhyGs Eq. 1).",
+        1.0, 1.0e7)
+    boundary_eps: float = _param(1.0e-4, "Floor epsilon of the boundary volume sigmoid (M-PhyGs Eq. 1).", 0.0, 1.0)
     density_iterations: int = _param(
-        1, "Rounds of 3x3x3 mean filtering of the occupancy density (occupied cells reset to 1).")
-    density_threshold: float = _param(0.5, "Density at and above which a cell is inside an object.")
+        1, "Rounds of 3x3x3 mean filtering of the occupancy density (occupied cells reset to 1).", 0, 20)
+    density_threshold: float = _param(0.5, "Density at and above which a cell is inside an object.", 0.0, 1.0)
     consensus_frames: int = _param(
         2, "Later observed frames each object's lifted hull is intersected with, each moved onto it "
-        "(removes hull that an occluding object left in the lifted frame); 0 = lift the frame as observed.")
+        "(removes hull that an occluding object left in the lifted frame); 0 = lift the frame as observed.", 0, 100)
     consensus_max_removed: float = _param(
         0.05, "Largest fraction of an object's voxels one later frame may remove; a frame that would "
-        "remove more (the object deformed or turned) is not used for it.")
+        "remove more (the object deformed or turned) is not used for it.", 0.0, 1.0)
     consensus_timeout: float = _param(
         5.0, "lifting_node: seconds to wait for the later frames after the first complete one; "
-        "then lift with those that came.")
+        "then lift with those that came.", 0.0, 600.0)
     scene: str = _param("", SCENE_HELP)
 
 
@@ -96,27 +123,27 @@ class IdentifyConfig:
     device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
     cpu_workers: int = _param(
         0, "On the CPU: simulations the batched losses (search, uncertainty) run side by side, one per "
-        "core; 0 = every core. The results do not depend on it.")
-    window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.")
-    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.")
-    curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.")
-    iterations: int = _param(20, "Optimiser iterations per curriculum stage.")
-    learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.")
-    velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.")
-    windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.")
-    search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.")
+        "core; 0 = every core. The results do not depend on it.", 0, 1024)
+    window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.", 0, 100000)
+    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.", 0.0, 3600.0)
+    curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.", 0, 100000)
+    iterations: int = _param(20, "Optimiser iterations per curriculum stage.", 0, 100000)
+    learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.", 1.0e-6, 10.0)
+    velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.", 0.0, 10.0)
+    windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.", 1, 1000)
+    search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.", 0, 100000)
     search_rounds: int = _param(
-        3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.")
+        3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.", 0, 100)
     search_starts: int = _param(
-        3, "Best points of the first search round that each go through the further rounds.")
-    search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.")
+        3, "Best points of the first search round that each go through the further rounds.", 1, 100)
+    search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.", 0, 100000)
     max_modulus: float = _param(
         1.0e6, "Pa: the fit keeps E and bulk moduli at or below it (WARN when one ends there). A stiffer "
         "object hardly deforms at a reconstruction's millimetres and frame rate, and its simulation takes "
-        "more time steps (as the square root of the modulus).")
+        "more time steps (as the square root of the modulus).", 1.0e4, 1.0e12)
     uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
-    chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.")
-    silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.")
+    chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.", 0.0, 1.0e6)
+    silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.", 0.0, 1.0e6)
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
     density_ratios: bool = _param(
         False, "Also fit the objects' undeclared densities. Only their ratios show (in contact), so "
@@ -138,24 +165,33 @@ class IdentifyConfig:
     scene: str = _param("", SCENE_HELP)
 
 
+MAX_SPEED = 100.0
+"""m/s: the largest linear speed a what-if request (``initial_velocities``) may give an object."""
+MAX_SPIN = 1000.0
+"""rad/s: the largest angular speed a what-if request may give an object."""
+
+
 @dataclass
 class PredictionConfig:
     """prediction_node: roll the identified digital twin forward and publish the predicted motion."""
 
     device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
-    horizon: float = _param(2.0, "Seconds to predict past the last observed frame.")
-    frame_rate: float = _param(10.0, "Predicted frames per second.")
+    horizon: float = _param(
+        2.0, "Seconds to predict past the last observed frame. Settable at run time.", 0.0, 60.0, run_time=True)
+    frame_rate: float = _param(
+        10.0, "Predicted frames per second. Settable at run time.", 0.1, 1000.0, run_time=True)
     estimates: str = _param(
         "", "The material estimates (YAML text). identify_node's output_yaml file sets it: "
-        "--params-file FILE. Empty: from /mosiv/material_estimates. Settable at run time.")
+        "--params-file FILE. Empty: from /mosiv/material_estimates. Settable at run time.", run_time=True)
     initial_velocities: str = _param(
         "", "What-if request: new initial velocities by object, YAML {name: [vx, vy, vz]} in m/s "
-        "(six values add wx, wy, wz in rad/s). With a request, the prediction is every frame from "
-        "the first observed one. Empty: as identified. Settable at run time.")
+        f"(six values add wx, wy, wz in rad/s; at most {MAX_SPEED:g} m/s and {MAX_SPIN:g} rad/s). With "
+        "a request, the prediction is every frame from the first observed one. Empty: as identified. "
+        "Settable at run time.", run_time=True)
     swapped_params: str = _param(
         "", "What-if request: material parameters replacing the identified ones, YAML {name: "
         "{parameter: value}} in SI units (a friction angle as friction_angle_deg). Empty: as "
-        "identified. Settable at run time.")
+        "identified. Settable at run time.", run_time=True)
     scene: str = _param("", SCENE_HELP)
 
 
@@ -177,8 +213,31 @@ def describe(config_type: type) -> list[tuple[str, Any, str]]:
     ]
 
 
+def value_range(config_type: type, name: str) -> tuple[float, float] | None:
+    """The closed interval [low, high] a parameter's numbers must lie in, or None."""
+    return next(f.metadata.get("range") for f in dataclasses.fields(config_type) if f.name == name)
+
+
+def check(config: Any) -> Any:
+    """Return a stage config whose numbers all lie in their ranges; else ValueError naming one."""
+    for f in dataclasses.fields(config):
+        bounds = f.metadata.get("range")
+        value = getattr(config, f.name)
+        if bounds is None:
+            continue
+        for number in value if isinstance(value, list) else [value]:
+            if isinstance(number, bool) or not isinstance(number, int | float):
+                raise ValueError(f"{f.name}: expected a number, got {number!r}")
+            if not bounds[0] <= number <= bounds[1]:  # NaN is outside too
+                raise ValueError(f"{f.name}: {number!r} is out of range [{bounds[0]:g}, {bounds[1]:g}]")
+    return config
+
+
 def from_mapping(config_type: type, values: dict[str, Any]) -> Any:
-    """Build a stage config from a mapping, rejecting unknown keys with their names."""
+    """Build a stage config from a mapping, rejecting unknown keys with their names.
+
+    Values outside their ranges are refused (``check``).
+    """
     names = {f.name for f in dataclasses.fields(config_type)}
     unknown = sorted(set(values) - names)
     if unknown:
@@ -186,4 +245,4 @@ def from_mapping(config_type: type, values: dict[str, Any]) -> Any:
             f"{config_type.__name__}: unknown parameter(s) {', '.join(unknown)}; "
             f"known: {', '.join(sorted(names))}"
         )
-    return config_type(**values)
+    return check(config_type(**values))

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 import signal
 import subprocess
 import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,8 @@ PACKAGE = "mosiv_ros"
 LOG = logging.getLogger(__name__)
 READY_TIMEOUT = 60.0
 """Seconds a node may take to start (import, kernel cache, DDS discovery) before it is an error."""
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+"""Signals on which the runner stops its nodes before it ends."""
 
 
 class GraphError(RuntimeError):
@@ -40,6 +43,14 @@ class NodeExited(GraphError):
     """A node process exited while something was waiting for it."""
 
 
+class NodeFailed(GraphError):
+    """A node process reported a failure while something was waiting for it."""
+
+
+class Stopped(GraphError):
+    """The runner got SIGINT, SIGTERM or SIGHUP while its graph ran."""
+
+
 def exit_description(code: int) -> str:
     """'exited with code 2', or 'was killed by SIGABRT' for a process a signal ended."""
     if code < 0:
@@ -48,6 +59,46 @@ def exit_description(code: int) -> str:
         except ValueError:
             return f"was killed by signal {-code}"
     return f"exited with code {code}"
+
+
+MAX_DOMAIN_ID = 232
+"""The largest ROS domain id (ROS 2 documentation: the DDS port range caps it)."""
+DOMAIN_IDS = range(1, 102)
+"""ROS domain ids a graph gets by default: 0 is every shell's default, and above 101 a
+participant's DDS ports can reach the ephemeral ports on Linux."""
+DOMAIN_PORTS = (7400, 250)
+"""The DDS (RTPS) port mapping: domain d uses UDP ports base + gain * d up to the next domain's."""
+
+
+def domains_in_use(udp_tables: Sequence[str | Path] = ("/proc/net/udp", "/proc/net/udp6")) -> set[int]:
+    """The ROS domains that have a DDS participant on this host: those whose UDP ports are bound.
+
+    Read from the kernel's socket tables (Linux); none where they cannot be read.
+    """
+    base, gain = DOMAIN_PORTS
+    used = set()
+    for table in udp_tables:
+        try:
+            rows = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for row in rows:
+            port = int(row.split()[1].rsplit(":", 1)[1], 16)  # local_address is HEXIP:HEXPORT
+            if port >= base:
+                used.add((port - base) // gain)
+    return used
+
+
+def free_domain_id() -> int:
+    """A ROS domain id of DOMAIN_IDS that no DDS participant on this host uses; GraphError if none.
+
+    One at random: two graphs started at once should not both take the lowest.
+    """
+    free = sorted(set(DOMAIN_IDS) - domains_in_use())
+    if not free:
+        raise GraphError(f"every ROS domain {DOMAIN_IDS.start}..{DOMAIN_IDS.stop - 1} has a DDS "
+                         "participant on this host; choose one with --domain-id")
+    return random.choice(free)
 
 
 def package_prefix() -> Path:
@@ -117,12 +168,14 @@ class NodeProcess:
                 self._sink(f"[{self.name}] {line}")
 
     def wait_for_line(self, text: str, timeout: float,
-                      check: Callable[[], None] | None = None) -> str:
+                      check: Callable[[], None] | None = None, failures: Sequence[str] = ()) -> str:
         """Block until the process prints a line containing ``text``; return that line.
 
-        Raises ``NodeExited`` as soon as the process has exited without printing it, and
-        ``GraphError`` when ``timeout`` seconds pass; ``check`` (called a few times a second)
-        may raise to stop the wait early, e.g. when another node of the graph has failed.
+        Raises ``NodeExited`` as soon as the process has exited without printing it, ``NodeFailed``
+        as soon as it prints a line containing one of ``failures`` (what it says when the awaited
+        line will not come), and ``GraphError`` when ``timeout`` seconds pass; ``check`` (called a
+        few times a second) may raise to stop the wait early, e.g. when another node of the graph
+        has failed.
         """
         began = time.monotonic()
         deadline = began + timeout
@@ -132,6 +185,9 @@ class NodeProcess:
                 for line in self.lines[seen:]:
                     if text in line:
                         return line
+                    if any(failure in line for failure in failures):
+                        raise NodeFailed(f"{self.name} failed before printing a line containing "
+                                         f"{text!r}: {line}")
                 seen = len(self.lines)
                 if self.process.poll() is not None and not self._reader.is_alive():
                     raise NodeExited(
@@ -192,6 +248,7 @@ class Graph:
         self.env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         self.sink = sink
         self.nodes: dict[str, NodeProcess] = {}
+        self._handlers: dict[int, Any] = {}  # the signal handlers before start
         self._tmp = tempfile.TemporaryDirectory(prefix="mosiv-graph-")
         self.env.setdefault("ROS_LOG_DIR", self._tmp.name)
 
@@ -207,20 +264,47 @@ class Graph:
         return argv
 
     def start(self) -> Graph:
+        """Start the nodes in order; on any failure or signal on the way, stop those started."""
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
-        for spec in self.specs:
-            # in order, each once it is ready, so that a node never misses what the one started
-            # before it publishes (a node that exits at start-up is left for the caller to see)
-            node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
-            node.wait_ready(READY_TIMEOUT)
+        self._catch_signals()
+        try:
+            for spec in self.specs:
+                # in order, each once it is ready, so that a node never misses what the one started
+                # before it publishes (a node that exits at start-up is left for the caller to see)
+                node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+                node.wait_ready(READY_TIMEOUT)
+        except BaseException:
+            self.stop()
+            raise
         return self
 
-    def wait_for_line(self, name: str, text: str, timeout: float) -> str:
+    def _catch_signals(self) -> None:
+        """Make SIGINT, SIGTERM and SIGHUP raise ``Stopped`` while the graph runs (main thread only).
+
+        The nodes run in sessions of their own (a Ctrl-C in the terminal reaches the runner
+        alone, which then stops them in order): were the runner to die of a signal, they would
+        keep running. The exception ends the caller's wait, and its ``with`` block stops them.
+        """
+        if threading.current_thread() is not threading.main_thread():
+            return
+
+        def stopped(signum: int, _frame: object) -> None:
+            self._ignore_signals()  # once: a second signal must not cut the stopping short
+            raise Stopped(f"got {signal.Signals(signum).name}; stopping the nodes")
+
+        for sig in STOP_SIGNALS:
+            self._handlers[sig] = signal.signal(sig, stopped)
+
+    def _ignore_signals(self) -> None:
+        for sig in self._handlers:
+            signal.signal(sig, lambda _signum, _frame: None)
+
+    def wait_for_line(self, name: str, text: str, timeout: float, failures: Sequence[str] = ()) -> str:
         """``NodeProcess.wait_for_line`` on node ``name``, also stopped by another node's failure.
 
-        The wait ends, with the reason, as soon as any other node of the graph exits with a code
-        other than 0.
+        The wait ends, with the reason, as soon as node ``name`` prints one of ``failures`` or any
+        other node of the graph exits with a code other than 0.
         """
 
         def others_alive() -> None:
@@ -230,11 +314,21 @@ class Graph:
                     raise NodeExited(f"{other} {exit_description(code)} while waiting for {name} "
                                      f"to print {text!r}; its last lines:\n" + node.tail())
 
-        return self.nodes[name].wait_for_line(text, timeout, others_alive)
+        return self.nodes[name].wait_for_line(text, timeout, others_alive, failures)
 
     def stop(self, timeout: float = 5.0) -> dict[str, int]:
-        """Stop every node, last started first; return their exit codes."""
-        codes = {name: node.stop(timeout) for name, node in reversed(self.nodes.items())}
+        """Stop every node, last started first; return their exit codes.
+
+        Signals that ``start`` caught are ignored until the nodes are stopped, then handled as
+        before it.
+        """
+        self._ignore_signals()
+        try:
+            codes = {name: node.stop(timeout) for name, node in reversed(self.nodes.items())}
+        finally:
+            for sig, handler in self._handlers.items():
+                signal.signal(sig, handler)
+            self._handlers = {}
         self._tmp.cleanup()
         return codes
 

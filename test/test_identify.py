@@ -287,6 +287,21 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
 
 
 @pytest.mark.slow
+def test_a_truncated_checkpoint_is_reported_and_the_fit_starts_afresh(tmp_path, caplog):
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, search_rounds=1,
+                                       iterations=2, checkpoint_dir=str(tmp_path))
+    Identifier(problem, settings).run()
+    path = tmp_path / "identify_checkpoint.npz"
+    whole = path.read_bytes()
+    for size in (len(whole) // 2, 0):  # killed while the file was written by something else
+        path.write_bytes(whole[:size])
+        caplog.clear()
+        result = Identifier(problem, settings).run()  # a BadZipFile traceback ended `mosiv run`
+        assert len(result.history) == 2 * 2  # two stages of two iterations: started afresh
+        assert f"cannot read checkpoint {path}" in caplog.text and "starting afresh" in caplog.text
+
+
+@pytest.mark.slow
 def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
     problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
                                        iterations=2, checkpoint_dir=str(tmp_path))

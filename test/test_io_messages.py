@@ -250,6 +250,17 @@ def test_pointcloud_round_trips_without_extra_fields(types):
     assert cloud.fields == {} and cloud.frame_id == "world"
 
 
+def test_a_cloud_with_a_non_finite_value_is_a_malformed_message(types):
+    xyz = RNG.normal(size=(9, 3))
+    xyz[[2, 5], 1] = np.nan  # the pipeline's clouds are dense: NaN is not "no point" there
+    with pytest.raises(MessageError, match="PointCloud2 field 'y': 2 of 9 points are not finite"):
+        pointcloud_from_msg(pointcloud_to_msg(types, xyz, np.arange(9), STAMP))
+    sdf = np.zeros(9)
+    sdf[0] = -np.inf
+    with pytest.raises(MessageError, match="PointCloud2 field 'sdf': 1 of 9 points are not finite"):
+        pointcloud_from_msg(pointcloud_to_msg(types, np.zeros((9, 3)), np.arange(9), STAMP, fields={"sdf": sdf}))
+
+
 def test_empty_pointcloud_round_trips(types):
     msg = pointcloud_to_msg(types, np.zeros((0, 3)), np.zeros(0, int), STAMP, fields={"t": []})
     assert msg.width == 0 and len(msg.data) == 0

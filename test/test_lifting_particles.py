@@ -186,6 +186,14 @@ def test_particle_cloud_round_trips_through_pointcloud2():
     assert back.stamp_ns == 7
 
 
+def test_an_empty_particle_cloud_is_refused_saying_so():
+    cloud = lift(observed(ball((0.0, 0.0, 0.1), 0.03)), FINE, SCENE).to_cloud()
+    empty = PointCloud(cloud.xyz[:0], cloud.object_id[:0], {k: v[:0] for k, v in cloud.fields.items()},
+                       stamp_ns=7)
+    with pytest.raises(ValueError, match="particle cloud of stamp 7 ns is empty: no particle to simulate"):
+        LiftedParticles.from_cloud(empty, 5e3, 1e-4)
+
+
 def test_an_undeclared_object_is_lifted_with_unknown_material_and_a_warning():
     lifted = lift(observed(ball((0.0, 0.0, 0.1), 0.03)), FINE, Scene())
     assert np.all(lifted.material == 255)

@@ -101,6 +101,20 @@ def test_params_file_equals_the_config_defaults():
             assert help_text, f"{node}.{name} has no description"
 
 
+def test_a_params_file_value_out_of_its_range_is_refused_naming_the_parameter(tmp_path):
+    for node, name, value, message in [
+        ("prediction_node", "horizon", 1.0e9, "horizon: 1000000000.0 is out of range \\[0, 60\\]"),
+        ("prediction_node", "frame_rate", 0.0, "frame_rate: 0.0 is out of range \\[0.1, 1000\\]"),
+        ("identify_node", "curriculum", [5, -1, 0], "curriculum: -1 is out of range"),
+        ("lifting_node", "particle_spacing", float("nan"), "particle_spacing: nan is out of range"),
+        ("reconstruction_node", "voxel_size", "fine", "voxel_size: expected a number, got 'fine'"),
+    ]:
+        path = tmp_path / "params.yaml"
+        path.write_text(yaml.safe_dump({node: {"ros__parameters": {name: value}}}))
+        with pytest.raises(ValueError, match=message):
+            load_params_file(path)
+
+
 @pytest.mark.parametrize("path", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
 def test_every_shipped_params_file_names_known_nodes_and_parameters_of_their_types(path):
     configs = load_params_file(path)  # unknown nodes or parameters are refused

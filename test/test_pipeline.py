@@ -19,6 +19,7 @@ from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE, parameter_errors
 from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
+from mosiv_ros.identify.problem import ProblemError, frame_steps
 from mosiv_ros.identify.run import identify_objects
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.io.files import MANIFEST, OutputDir
@@ -187,12 +188,39 @@ def test_parameter_errors_score_the_ground_and_the_effects_the_fit_found():
 def test_a_fit_that_cannot_run_is_reported_as_error_estimates_not_raised(drop_bag):
     config = RunConfig()
     prepared = prepare(drop_bag, config)
-    frames = [prepared.frames[i] for i in (0, 1, 2, 4, 5)]  # frame 3 dropped: uneven spacing
+    frames = [prepared.frames[i] for i in (0, 1, 7, 8)]  # 5 of 9 frames lost: too few remain
     identification = identify_objects(frames, prepared.lifted, prepared.recording.scene,
                                       IdentifyConfig(iterations=1, uncertainty=False))
     assert identification.result is None
     obj = identification.estimates.objects[0]
-    assert obj.level == ERROR and "not evenly spaced" in obj.message
+    assert obj.level == ERROR and "too few frames remain: 4 of the 9 frames" in obj.message
+
+
+def test_frames_a_stream_lost_are_gaps_of_whole_frame_times():
+    ms = 1_000_000
+    assert frame_steps([0, 100 * ms, 200 * ms]) == (pytest.approx(0.1), [0, 1, 2])
+    dt, steps = frame_steps([0, 101 * ms, 199 * ms, 402 * ms, 500 * ms, 800 * ms])  # with jitter
+    assert dt == pytest.approx(0.1, abs=0.003) and steps == [0, 1, 2, 4, 5, 8]
+    for stamps, message in [([0, 100 * ms, 250 * ms], "frames 1 and 2 are 150.0 ms apart, not a whole number"),
+                            ([0, 100 * ms, 700 * ms, 800 * ms], "too few frames remain: 4 of the 9 frames"),
+                            ([0, 100 * ms, 100 * ms], "two share a stamp"),
+                            ([0], "need at least 2 observed frames")]:
+        with pytest.raises(ProblemError, match=message):
+            frame_steps(stamps)
+
+
+@pytest.mark.slow
+def test_a_frame_set_the_stream_lost_is_a_gap_the_fit_simulates_through(drop_bag, caplog):
+    prepared = prepare(drop_bag, RunConfig())
+    frames = [prepared.frames[i] for i in (0, 1, 2, 4, 5)]  # frame 3 lost: the fit failed outright
+    config = IdentifyConfig(curriculum=[0], iterations=2, search_samples=0, uncertainty=False)
+    identification = identify_objects(frames, prepared.lifted, prepared.recording.scene, config)
+    assert identification.result is not None, identification.estimates.objects[0].message
+    assert identification.estimates.objects[0].level != ERROR
+    assert identification.estimates.frames == 6  # frames 0 to 5 simulated, frame 3 among them
+    assert "1 of the 6 frames from stamp" in caplog.text and "lost frames 3)" in caplog.text
+    observations = identification.identifier.problem.observations
+    assert [len(points[0]) > 0 for points in observations.points] == [True, True, True, False, True, True]
 
 
 def test_twin_predicts_new_initial_conditions_and_swapped_materials(drop_bag):

@@ -3,16 +3,19 @@
 from __future__ import annotations
 
 import math
+import os
+import signal
 import subprocess
+import time
 
 import numpy as np
 import pytest
 import rclpy
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from test_io_scene import alias_bomb
 from test_nodes_process import LATCHED, Listener
@@ -113,9 +116,9 @@ def test_twin_what_if_rolls_from_the_first_observed_frame_with_the_request(prepa
         twin.what_if(WhatIf.parse("{ball: [1, 0, 0]}"), 0.2, 10.0)
 
 
-def _set(listener: Listener, client, name: str, value: str):
-    request = SetParameters.Request(parameters=[Parameter(name=name, value=ParameterValue(
-        type=ParameterType.PARAMETER_STRING, string_value=value))])
+def _set(listener: Listener, client, name: str, value):
+    """What ``ros2 param set`` does: one SetParameters call; its result."""
+    request = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
     future = client.call_async(request)
     assert listener.wait_for(future.done, 30), f"no reply to setting {name}"
     return future.result().results[0]
@@ -169,8 +172,78 @@ def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_req
 
 
 @pytest.mark.slow
+def test_prediction_node_refuses_parameters_out_of_range_with_the_reason_and_keeps_predicting(
+        drop_bag, prepared, tmp_path):
+    path = _estimates(prepared.frames[0].stamp_ns).write(tmp_path / "material_estimates.yaml")
+    listener = Listener("test_prober")
+    try:
+        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+        cloud = prepared.lifted.to_cloud()
+        publisher.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id,
+                                            prepared.frames[0].stamp_ns, cloud.frame_id, cloud.fields))
+        client = listener.node.create_client(SetParameters, "/prediction_node/set_parameters")
+        lifting = listener.node.create_client(SetParameters, "/lifting_node/set_parameters")
+        specs = [NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 0.3, "device": "cpu"}),
+                 NodeSpec("lifting_node")]
+        with Graph(specs, params_file=path, sink=None) as graph:
+            node = graph.nodes["prediction_node"]
+            node.wait_for_line("predicted", 120)
+            assert client.wait_for_service(timeout_sec=10) and lifting.wait_for_service(timeout_sec=10)
+            for name, value, reason in [
+                ("horizon", 1e9, "horizon out of range"),  # 1 PiB of rollout frames: it killed the node
+                ("horizon", -1.0, "horizon out of range"),
+                ("horizon", float("nan"), "horizon out of range"),
+                ("frame_rate", 0.0, "frame_rate out of range"),
+                ("frame_rate", -5.0, "frame_rate out of range"),
+                ("initial_velocities", "{jelly: [1.0e9, 0.0, 0.0]}",
+                 "initial_velocities: jelly: 1e+09 m/s is above the limit of 100 m/s"),
+                ("initial_velocities", "{jelly: [0, 0, 0, 0, 5.0e3, 0]}", "5000 rad/s is above the limit"),
+                ("device", "cpu", "device: read at start only"),
+            ]:
+                result = _set(listener, client, name, value)
+                assert not result.successful and reason in result.reason, (name, value, result.reason)
+            # a node that reads its parameters at start only says so rather than ignoring a change
+            result = _set(listener, lifting, "particle_spacing", 0.02)
+            assert not result.successful and result.reason == "particle_spacing: read at start only"
+            time.sleep(1.0)  # a refused change is not rolled out: nothing to crash on
+            assert node.process.poll() is None and graph.nodes["lifting_node"].process.poll() is None
+            assert _set(listener, client, "horizon", 0.4).successful
+            node.wait_for_line("(0.50..0.90 s after the first observed frame)", 120)  # horizon 0.4 s
+    finally:
+        listener.close()
+
+
+@pytest.mark.slow
+def test_a_node_busy_in_a_long_callback_stops_on_sigterm_within_seconds(drop_bag, prepared, tmp_path):
+    path = _estimates(prepared.frames[0].stamp_ns).write(tmp_path / "material_estimates.yaml")
+    listener = Listener("test_stopper")
+    try:
+        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+        cloud = prepared.lifted.to_cloud()
+        publisher.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id,
+                                            prepared.frames[0].stamp_ns, cloud.frame_id, cloud.fields))
+        spec = NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 60.0, "device": "cpu"})
+        with Graph([spec], params_file=path, sink=None) as graph:
+            node = graph.nodes["prediction_node"]
+            assert listener.wait_for(lambda: publisher.get_subscription_count() > 0, 20)
+            time.sleep(3.0)  # the particles are in: the callback rolls a minute of motion out
+            assert not any("predicted" in line for line in node.lines)
+            began = time.monotonic()
+            os.killpg(node.process.pid, signal.SIGTERM)  # it ran on until the rollout ended
+            code = node.process.wait(120)
+            stopped = time.monotonic() - began
+    finally:
+        listener.close()
+    assert code == 0 and stopped < 5, (code, stopped, node.tail())
+
+
+@pytest.mark.slow
 def test_prediction_node_refuses_unusable_estimates_at_start_with_one_clear_line():
     result = subprocess.run([str(executable_path("prediction_node")), "--ros-args", "-p",
                              "estimates:=nonsense"], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stderr
     assert "prediction_node: error: not a mosiv estimates document (a str)" in result.stderr
+    result = subprocess.run([str(executable_path("prediction_node")), "--ros-args", "-p",
+                             "horizon:=1.0e9"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert "prediction_node: error: " in result.stderr and "horizon out of range" in result.stderr

@@ -253,7 +253,9 @@ def coordinate_std(identifier: Identifier, result: FitResult,
     losses = identifier.batch_losses(np.array(candidates), result.velocity, frames, together=True)
     base = losses[0]
     obs = identifier.problem.observations
-    n_terms = (min(frames or obs.n_frames - 1, obs.n_frames - 1)) * obs.n_objects
+    last = min(frames or obs.n_frames - 1, obs.n_frames - 1)
+    # a term per object and observed frame (a frame the stream lost has no points and no term)
+    n_terms = max(1, sum(any(len(p) for p in frame) for frame in obs.points[1:last + 1])) * obs.n_objects
     std = np.full(len(u), np.inf)
     for j in range(len(u)):
         curvature = (losses[1 + 2 * j] - 2 * base + losses[2 + 2 * j]) / h**2

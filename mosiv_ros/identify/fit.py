@@ -58,6 +58,7 @@ import math
 import os
 import queue
 import time
+import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -798,8 +799,9 @@ class Identifier:
             adam.m, adam.v, adam.t = data["m"], data["v"], int(data["t"])
             return (data["u"], data["velocity"], adam, json.loads(str(data["history"])),
                     int(data["stage"]), int(data["iteration"]), int(data["failures"]))
-        except (OSError, KeyError, ValueError) as error:
-            _LOG.warning("cannot read checkpoint %s (%s); starting afresh", path, error)
+        except (OSError, EOFError, KeyError, ValueError, zipfile.BadZipFile) as error:  # partial or corrupt
+            _LOG.warning("cannot read checkpoint %s (%s: %s); starting afresh", path,
+                         type(error).__name__, error)
             return None
 
 

@@ -6,7 +6,9 @@ calibration and the scene declaration into what ``identify.fit`` needs:
 
 - observations: per object its occupied voxel centres per frame (volumes, like the simulated
   particles), the frames' masks and cameras for the silhouette loss; frames must be evenly
-  spaced (their median spacing is the simulation's frame time);
+  spaced (their spacing is the simulation's frame time) but for frames the stream lost: such a
+  gap is simulated through with nothing observed (no loss term), with a warning, as long as
+  ``MIN_OBSERVED_FRACTION`` of the frames remain;
 - the simulator set-up: grid spacing twice the particle spacing, a domain around everything
   observed (and the floor), the declared ground (friction 0.5 to start with unless declared),
   gravity (declared or (0, 0, -9.81)), the declared effects with their declared values, and the
@@ -62,7 +64,9 @@ DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
 SENSOR_EFFECTS = ("camera_time_offset", "mask_noise")
 """Declared effects that act on the observations, not on the simulated motion."""
 FRAME_SPACING_TOLERANCE = 0.1
-"""Largest deviation of a frame spacing from the median, as a fraction of it."""
+"""Largest deviation of a frame spacing from a whole number of frame times, as a fraction of one."""
+MIN_OBSERVED_FRACTION = 0.5
+"""Least fraction of a window's frames (first to last observed) that must have been observed."""
 
 
 class ProblemError(ValueError):
@@ -106,19 +110,35 @@ def views_of(recording: Recording) -> list[View]:
     return views
 
 
-def frame_spacing(stamps_ns: Sequence[int]) -> float:
-    """The median spacing (s) of evenly spaced stamps; ProblemError if they are not even."""
+def frame_steps(stamps_ns: Sequence[int]) -> tuple[float, list[int]]:
+    """The frame time (s) of observed stamps, and the simulation frame of each (the first: 0).
+
+    A stream may lose frames: a spacing of n frame times (to within ``FRAME_SPACING_TOLERANCE``
+    of one) puts the next stamp n frames on, past a gap of n - 1 frames. The frame time is the
+    median of the spacings about as small as the smallest (those without a gap). ProblemError
+    if a spacing is no such multiple, or if fewer than ``MIN_OBSERVED_FRACTION`` of the frames
+    from the first stamp to the last remain.
+    """
     if len(stamps_ns) < 2:
         raise ProblemError(f"need at least 2 observed frames, got {len(stamps_ns)}")
     gaps = np.diff(np.asarray(stamps_ns, dtype=np.int64)) * 1e-9
-    median = float(np.median(gaps))
-    worst = int(np.argmax(np.abs(gaps - median)))
-    if median <= 0 or abs(gaps[worst] - median) > FRAME_SPACING_TOLERANCE * median:
+    if gaps.min() <= 0:
+        raise ProblemError("observed frames are not in stamp order, or two share a stamp")
+    frame_dt = float(np.median(gaps[gaps < 1.5 * gaps.min()]))
+    steps = np.rint(gaps / frame_dt)
+    worst = int(np.argmax(np.abs(gaps - steps * frame_dt)))
+    if abs(gaps[worst] - steps[worst] * frame_dt) > FRAME_SPACING_TOLERANCE * frame_dt:
         raise ProblemError(
             f"observed frames are not evenly spaced: frames {worst} and {worst + 1} are "
-            f"{gaps[worst] * 1e3:.1f} ms apart, the median spacing is {median * 1e3:.1f} ms "
-            "(a frame was dropped? the fit needs one simulation frame per observed frame)")
-    return median
+            f"{gaps[worst] * 1e3:.1f} ms apart, not a whole number of frame times "
+            f"({frame_dt * 1e3:.1f} ms); the fit needs one simulation frame per observed frame")
+    index = np.concatenate([[0], np.cumsum(steps)]).astype(int).tolist()
+    if len(stamps_ns) < MIN_OBSERVED_FRACTION * (index[-1] + 1):
+        raise ProblemError(
+            f"too few frames remain: {len(stamps_ns)} of the {index[-1] + 1} frames from stamp "
+            f"{stamps_ns[0]} ns to {stamps_ns[-1]} ns were observed (at least "
+            f"{MIN_OBSERVED_FRACTION:.0%} are needed)")
+    return frame_dt, index
 
 
 def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
@@ -144,9 +164,20 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
             if param not in free:
                 free.append(param)
     stamps = [f.stamp_ns for f in frames]
-    frame_dt = frame_spacing(stamps)
-    points = [[_points(frame, object_id) for object_id in ids] for frame in frames]
-    masks = [dict(frame.masks) for frame in frames] if options.use_masks else []
+    frame_dt, steps = frame_steps(stamps)
+    n_frames = steps[-1] + 1
+    if n_frames > len(frames):
+        lost = sorted(set(range(n_frames)) - set(steps))
+        _LOG.warning("%d of the %d frames from stamp %d ns on are missing (the stream lost frames %s): "
+                     "the fit simulates through them and leaves them out of its losses",
+                     len(lost), n_frames, stamps[0], ", ".join(map(str, lost)))
+    # a frame the stream lost: no points and no masks, so that no loss term compares with it
+    points = [[np.zeros((0, 3)) for _ in ids] for _ in range(n_frames)]
+    masks = [{} for _ in range(n_frames)] if options.use_masks else []
+    for frame, step in zip(frames, steps, strict=True):
+        points[step] = [_points(frame, object_id) for object_id in ids]
+        if options.use_masks:
+            masks[step] = dict(frame.masks)
     observations = Observations(frame_dt, points, list(ids), list(views), masks, stamps[0])
     ground = ground_of(scene)
     if ground is not None and "friction" not in (scene.ground or {}):
@@ -171,7 +202,7 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
     problem = FitProblem(objects, particles, observations, config, free, fixed, boundary)
     _LOG.info("fit problem: %d objects (%s), %d particles, %d frames at %.1f fps, dx %.3f m, "
               "free: %s", len(objects), ", ".join(f"{o.name}: {o.family}" for o in objects),
-              len(particles.x), len(frames), 1 / frame_dt, dx, ", ".join(free))
+              len(particles.x), n_frames, 1 / frame_dt, dx, ", ".join(free))
     return problem
 
 

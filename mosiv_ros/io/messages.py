@@ -412,7 +412,8 @@ def pointcloud_from_msg(msg: Any) -> PointCloud:
     """PointCloud of any sensor_msgs/PointCloud2 with x, y, z and an integer object_id field.
 
     Any field order, offsets, point/row padding, byte order and organised (height > 1) layout is
-    read; extra fields keep their datatype (native byte order).
+    read; extra fields keep their datatype (native byte order). The pipeline's clouds are dense:
+    a NaN or infinite value in any floating-point field makes the message malformed.
     """
     record = _cloud_record_dtype(msg)
     height, width = int(msg.height), int(msg.width)
@@ -435,6 +436,10 @@ def pointcloud_from_msg(msg: Any) -> PointCloud:
     object_id = _as_integers(
         points["object_id"], np.dtype(np.uint16), "PointCloud2 field 'object_id'"
     )
+    for name in record.names:
+        if points[name].dtype.kind == "f" and not np.all(finite := np.isfinite(points[name])):
+            raise MessageError(f"PointCloud2 field {name!r}: {int((~finite).sum())} of {len(points)} "
+                               "points are not finite (NaN or infinite)")
     xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float32)
     extra = {
         name: points[name].astype(points[name].dtype.newbyteorder("="))

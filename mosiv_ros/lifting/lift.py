@@ -125,16 +125,21 @@ class LiftedParticles:
 
     @classmethod
     def from_cloud(cls, cloud: PointCloud, beta: float, eps: float) -> LiftedParticles:
-        """Read a ``/mosiv/particles`` cloud back (beta, eps: the settings it was lifted with)."""
+        """Read a ``/mosiv/particles`` cloud back (beta, eps: the settings it was lifted with).
+
+        ValueError if it lacks a field or has no particle (nothing to simulate).
+        """
         missing = [n for n in ("material", "sdf", "lattice_volume", "segment") if n not in cloud.fields]
         if missing:
             raise ValueError(f"particle cloud lacks field(s) {missing}")
+        if not len(cloud.xyz):
+            raise ValueError(f"particle cloud of stamp {cloud.stamp_ns} ns is empty: no particle to simulate")
         lattice = np.unique(cloud.fields["lattice_volume"])
         if len(lattice) > 1:
             raise ValueError(f"particle cloud has several lattice volumes {lattice.tolist()}")
         return cls(cloud.xyz.astype(np.float64), cloud.object_id, cloud.fields["segment"].astype(np.uint16),
                    cloud.fields["material"].astype(np.uint8), cloud.fields["sdf"].astype(np.float64),
-                   float(lattice[0]) if len(lattice) else 0.0, beta, eps, cloud.stamp_ns)
+                   float(lattice[0]), beta, eps, cloud.stamp_ns)
 
 
 def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,

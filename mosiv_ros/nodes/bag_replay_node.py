@@ -47,8 +47,6 @@ class BagReplayNode(Node):
         self.config: ReplayConfig = declare_config(self, ReplayConfig)
         if not self.config.bag:
             raise ValueError("parameter 'bag' is required: the rosbag2 directory to replay")
-        if self.config.rate < 0:
-            raise ValueError(f"parameter 'rate' must be >= 0, got {self.config.rate}")
         topics = list_topics(self.config.bag)
         wanted = set(self.config.topics) or set(topics)
         missing = sorted(wanted - set(topics))

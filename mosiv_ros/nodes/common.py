@@ -5,16 +5,25 @@ Not for algorithms: a node hands each message to the ROS-free core and publishes
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import signal
 import sys
+import threading
 import typing
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.exceptions import InvalidParameterValueException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -26,7 +35,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from mosiv_ros.config import LiftingConfig, describe
+from mosiv_ros.config import LiftingConfig, check, describe, value_range
 from mosiv_ros.io.errors import MosivIOError
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -62,18 +71,54 @@ _PARAMETER_TYPES = {
 }
 
 
-def declare_config(node: Node, config_type: type) -> Any:
-    """Declare one parameter per field of a stage config and return the config they give."""
+def declare_config(node: Node, config_type: type,
+                   check_change: Callable[[Any, dict[str, Any]], None] | None = None) -> Any:
+    """Declare one parameter per field of a stage config and return the config they give.
+
+    Each parameter is declared with its range (``config.value_range``); a value outside it stops
+    the node (ValueError). At run time a change is refused, with the reason, unless every changed
+    parameter is one the config marks ``run_time``, the config it gives passes ``config.check``
+    and ``check_change(new config, changed values)`` (the node's own checks) raises no ValueError.
+    """
     hints = typing.get_type_hints(config_type)
     values = {}
     for name, default, help_text in describe(config_type):
         kind = _PARAMETER_TYPES[hints[name]]
         descriptor = ParameterDescriptor(description=help_text, type=kind.value)
+        bounds = value_range(config_type, name)
+        if bounds is not None and kind == Parameter.Type.INTEGER:
+            descriptor.integer_range = [IntegerRange(from_value=bounds[0], to_value=bounds[1])]
+        elif bounds is not None and kind == Parameter.Type.DOUBLE:
+            descriptor.floating_point_range = [FloatingPointRange(from_value=bounds[0], to_value=bounds[1])]
         # An empty list default would be typed BYTE_ARRAY by rclpy; declare such a parameter by
         # its type instead. It (and an empty list in a params file) then reads as unset: the default.
-        value = node.declare_parameter(name, default if default != [] else kind, descriptor).value
+        try:
+            value = node.declare_parameter(name, default if default != [] else kind, descriptor).value
+        except InvalidParameterValueException as error:  # out of its range
+            raise ValueError(str(error)) from None
         values[name] = default if value is None else value
-    return config_type(**values)
+    config = check(config_type(**values))
+    node.add_on_set_parameters_callback(partial(_on_set, node, config_type, check_change))
+    return config
+
+
+def _on_set(node: Node, config_type: type, check_change: Callable[[Any, dict[str, Any]], None] | None,
+            params: list[Parameter]) -> SetParametersResult:
+    """``declare_config``'s check of a run-time parameter change."""
+    fields = {f.name: f for f in dataclasses.fields(config_type)}
+    changed = {p.name: p.value for p in params if p.name in fields}  # rclpy's own (use_sim_time) pass
+    fixed = sorted(name for name in changed if not fields[name].metadata.get("run_time"))
+    if fixed:
+        return SetParametersResult(successful=False, reason=f"{', '.join(fixed)}: read at start only")
+    current = {name: node.get_parameter(name).value for name in fields}
+    try:
+        config = check(config_type(**{name: default if current[name] is None else current[name]
+                                      for name, default, _ in describe(config_type)} | changed))
+        if check_change is not None:
+            check_change(config, changed)
+    except ValueError as error:
+        return SetParametersResult(successful=False, reason=str(error))
+    return SetParametersResult(successful=True)
 
 
 def print_help(node_name: str, config_type: type, summary: str) -> None:
@@ -108,6 +153,13 @@ class CoreLogHandler(logging.Handler):
             self.handleError(record)
 
 
+class _Stopped(BaseException):
+    """SIGINT or SIGTERM while the node spins: ends the callback running.
+
+    Not an Exception: no ``except Exception`` in the callback may swallow it.
+    """
+
+
 def main_for(
     node_name: str,
     config_type: type,
@@ -121,11 +173,20 @@ def main_for(
     if "-h" in user_args or "--help" in user_args:
         print_help(node_name, config_type, summary)
         return 0
-    # rclpy's own handler shuts the context down on Ctrl-C (spin then raises
-    # ExternalShutdownException) and also chains to Python's handler. Python's default raises
-    # KeyboardInterrupt at whatever line runs next, which may be the clean-up below; a no-op
-    # Python handler leaves the stop to rclpy alone, so the node always exits 0.
-    signal.signal(signal.SIGINT, lambda _signum, _frame: None)
+    # rclpy's own handler (SIGINT, SIGTERM) shuts the context down, and spin then raises
+    # ExternalShutdownException, but only once the callback running returns: a lift or a
+    # rollout may take minutes. rclpy chains to Python's handler, which ends that callback at
+    # once (_Stopped), only while spinning: Python's default would raise KeyboardInterrupt at
+    # whatever line runs next, the clean-up below included, and SIGTERM's would kill the node.
+    spinning = threading.Event()
+
+    def stop(_signum: int, _frame: object) -> None:
+        if spinning.is_set():
+            spinning.clear()  # once: the clean-up that follows runs to its end
+            raise _Stopped
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, stop)
     rclpy.init(args=argv)
     core = logging.getLogger("mosiv_ros")  # the core's log lines go to the node's log
     handler = CoreLogHandler(node_name)
@@ -141,11 +202,15 @@ def main_for(
         executor.add_node(node)
         node.get_logger().info(f"{node_name} ready")
         done = getattr(node, "done", None)
-        if done is None:
-            executor.spin()
-        else:
-            executor.spin_until_future_complete(done)
-    except ExternalShutdownException:
+        spinning.set()
+        try:
+            if done is None:
+                executor.spin()
+            else:
+                executor.spin_until_future_complete(done)
+        finally:
+            spinning.clear()
+    except (ExternalShutdownException, _Stopped):
         pass
     except Exception as error:
         if not rclpy.ok():

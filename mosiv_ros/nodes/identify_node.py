@@ -9,9 +9,12 @@ held-out error first), reporting progress on ``/diagnostics`` and in its log, th
 ``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one status per object
 named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``) and writes the
 estimates to ``output_yaml`` (which prediction_node also reads; written whole or not at all,
-and checked writable when the node starts, as ``close_loop_dir`` is). A failed fit is published as
-ERROR statuses saying why. On the topic graph the fit uses the 3D loss only: the
-silhouettes stay with the reconstruction (``mosiv run`` uses both).
+and checked writable when the node starts, as ``close_loop_dir`` is). A failed fit is published
+as ERROR statuses saying why; so is an unexpected error in the worker (also an ERROR status on
+``/diagnostics``, and logged with its traceback). An empty particle cloud is logged and the node
+waits for a usable one; a frame set the stream lost is a gap the fit simulates through. On the
+topic graph the fit uses the 3D loss only: the silhouettes stay with the reconstruction
+(``mosiv run`` uses both).
 
 With ``close_loop`` it then closes the loop on the same frames (``mosiv_ros.loop``: the last
 30 % of the window held out to judge candidate effects) and writes the report, the closed
@@ -23,14 +26,16 @@ from __future__ import annotations
 
 import threading
 import time
+import traceback
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.identify.estimates import ERROR
 from mosiv_ros.identify.family import candidate_families
-from mosiv_ros.identify.run import UNITS, identify_objects
+from mosiv_ros.identify.run import UNITS, failed_estimates, identify_objects
 from mosiv_ros.io.files import OutputDir, check_output_file
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.io.scene import Scene, load_scene
@@ -76,6 +81,7 @@ class IdentifyNode(Node):
         self.particles: LiftedParticles | None = None
         self.last_frame = time.monotonic()
         self.worker: threading.Thread | None = None
+        self.published = False  # estimates of the fit are on /mosiv/material_estimates
         self.create_subscription(
             PointCloud2, "/mosiv/observed_objects",
             guarded(self, "/mosiv/observed_objects",
@@ -119,6 +125,24 @@ class IdentifyNode(Node):
         self.worker.start()
 
     def _fit(self, frames: list[ObservedFrame]) -> None:
+        """The worker thread: the fit, then the loop closure; an unexpected error is reported.
+
+        Logged with its traceback and published as an ERROR status on ``/diagnostics`` (and as
+        ERROR estimates when none were published yet): the thread must not die silently.
+        """
+        try:
+            self._identify(frames)
+        except Exception as error:
+            reason = f"unexpected {type(error).__name__}: {error}"
+            self.get_logger().error(f"identification failed: {reason}\n{traceback.format_exc()}")
+            stamp_ns = self.get_clock().now().nanoseconds
+            self.progress_pub.publish(diagnostics_msg(
+                [("mosiv/identify", "", ERROR, f"identification failed: {reason}", [])], stamp_ns))
+            if not self.published:
+                estimates = failed_estimates(self.particles, self.scene, reason, frames)
+                self.estimates_pub.publish(diagnostics_msg(estimates.statuses(), estimates.stamp_ns))
+
+    def _identify(self, frames: list[ObservedFrame]) -> None:
         started = time.monotonic()
         time_left = TimeLeft()
 
@@ -146,6 +170,7 @@ class IdentifyNode(Node):
                                           progress=progress)
         estimates = identification.estimates
         self.estimates_pub.publish(diagnostics_msg(estimates.statuses(), estimates.stamp_ns))
+        self.published = True
         if self.config.output_yaml:
             path = estimates.write(self.config.output_yaml)
             self.get_logger().info(f"estimates written to {path} (prediction_node --ros-args "

@@ -15,19 +15,17 @@ What-if requests (parameters ``initial_velocities``, ``swapped_params``; see
 ``predict.request``) roll the twin from the first observed frame with new initial velocities or
 parameters, and the same topics then carry every frame from the first observed one (header
 stamp) on. ``ros2 param set`` changes a request, the estimates, ``horizon`` or ``frame_rate`` at
-run time; a request naming an unknown object or parameter is refused with the reason, and the
-prediction is redone after every accepted change.
+run time; a value outside its range (``mosiv_ros.config``), a request naming an unknown object or
+parameter, and a change of another parameter are refused with the reason, and the prediction is
+redone after every accepted change.
 
 Every new estimate replaces the prediction. Estimates with ERROR status are not rolled out.
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
@@ -47,8 +45,6 @@ from mosiv_ros.sim.runtime import resolve_device
 
 NAME = "prediction_node"
 SUMMARY = "roll the identified digital twin forward and publish predicted object dynamics"
-FIXED_AT_START = {"device", "scene"}
-"""Parameters read once when the node starts; the others may be set at run time."""
 
 
 class PredictionNode(Node):
@@ -56,7 +52,7 @@ class PredictionNode(Node):
 
     def __init__(self) -> None:
         super().__init__(NAME)
-        self.config: PredictionConfig = declare_config(self, PredictionConfig)
+        self.config: PredictionConfig = declare_config(self, PredictionConfig, self._check_change)
         resolve_device(self.config.device)  # a device that is not there stops the node now
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         self.request = WhatIf.parse(self.config.initial_velocities, self.config.swapped_params)
@@ -77,7 +73,6 @@ class PredictionNode(Node):
             guarded(self, "/mosiv/material_estimates",
                     lambda msg: Estimates.from_statuses(statuses_of(msg)), self._on_estimates),
             LATCHED_QOS)
-        self.add_on_set_parameters_callback(self._on_set)
         self.add_post_set_parameters_callback(self._on_changed)
         if self.config.estimates:
             self._on_estimates(Estimates.from_yaml(self.config.estimates))
@@ -94,26 +89,17 @@ class PredictionNode(Node):
         self.estimates, self.twin = estimates, None
         self._predict()
 
-    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
-        """Check a parameter change at run time; refuse it with the reason if it cannot be used."""
-        changed = {p.name: p.value for p in params}
-        fixed = sorted(set(changed) & FIXED_AT_START)
-        if fixed:
-            return SetParametersResult(successful=False, reason=f"{', '.join(fixed)}: read at start only")
-        try:
-            config = replace(self.config, **changed)
-            estimates = self.estimates
-            if changed.get("estimates"):
-                estimates = Estimates.from_yaml(config.estimates)
-                if _unusable(estimates):
-                    raise ValueError(_unusable(estimates))
-            request = WhatIf.parse(config.initial_velocities, config.swapped_params)
-            if estimates is not None:
-                request.check({o.name: o.family for o in estimates.objects})
-        except ValueError as error:
-            return SetParametersResult(successful=False, reason=str(error))
+    def _check_change(self, config: PredictionConfig, changed: dict) -> None:
+        """ValueError if a run-time change (in range) gives estimates or a request that cannot be used."""
+        estimates = self.estimates
+        if changed.get("estimates"):
+            estimates = Estimates.from_yaml(config.estimates)
+            if _unusable(estimates):
+                raise ValueError(_unusable(estimates))
+        request = WhatIf.parse(config.initial_velocities, config.swapped_params)
+        if estimates is not None:
+            request.check({o.name: o.family for o in estimates.objects})
         self.accepted = (config, estimates, request)
-        return SetParametersResult(successful=True)
 
     def _on_changed(self, _params: list[Parameter]) -> None:
         """After an accepted change: use it, and predict again once the set call has returned."""

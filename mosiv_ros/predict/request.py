@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import yaml
 
+from mosiv_ros.config import MAX_SPEED, MAX_SPIN
 from mosiv_ros.io.errors import shown
 from mosiv_ros.io.scene import load_yaml
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS, in_sim_units
@@ -46,6 +47,11 @@ class WhatIf:
             if len(values) not in (3, 6):
                 raise ValueError(f"initial_velocities: {name}: expected [vx, vy, vz] (m/s) or [vx, vy, "
                                  f"vz, wx, wy, wz] (m/s, rad/s), got {len(values)} values")
+            for size, limit, unit in ((math.hypot(*values[:3]), MAX_SPEED, "m/s"),
+                                      (math.hypot(*values[3:]), MAX_SPIN, "rad/s")):
+                if size > limit:
+                    raise ValueError(f"initial_velocities: {name}: {size:g} {unit} is above the "
+                                     f"limit of {limit:g} {unit}")
         parsed_p = {}
         for name, values in _mapping("swapped_params", params).items():
             if not isinstance(values, dict) or not values:
