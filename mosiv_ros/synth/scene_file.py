@@ -98,7 +98,7 @@ PALETTE = ([210.0, 40.0, 35.0], [40.0, 170.0, 60.0], [45.0, 70.0, 200.0], [220.0
 _SPECS = {spec.name: spec for spec in MATERIAL_PARAMS}
 
 # What one recording may ask for, checked before anything is allocated (the scene file's
-# fields are named in the error). docs/limits_io.md lists them.
+# fields are named in the error). docs/limits.md lists them.
 MAX_FRAMES = 10_000
 """Most frames of a recording: duration x cameras.fps + 1."""
 MAX_IMAGE_PIXELS = 4096 * 4096
