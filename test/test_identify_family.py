@@ -200,7 +200,7 @@ def test_the_loop_closure_fits_every_model_with_the_family_it_chose(heap):
     closure.families = closure.choose_families()
     chosen = closure.families[0]
     assert chosen.family == "sand" and [t.family for t in chosen.trials] == ["elastic", "sand"]
-    model = closure.fit([], None, "fit declared model")
+    model = closure.fit([], None, "fit declared model", "declared")
     assert [o.family for o in model.identification.identifier.problem.objects] == ["sand"]
     assert model.estimates.objects[0].family == "sand"
     assert model.estimates.objects[0].family_scores == chosen.scores

@@ -75,8 +75,8 @@ def test_identify_node_waits_out_an_empty_cloud_a_corrupt_checkpoint_a_lost_fram
     checkpoints = tmp_path / "checkpoints"
     checkpoints.mkdir()
     (checkpoints / CHECKPOINT_FILE).write_bytes(b"PK\x03\x04\x14\x00\x00\x00")  # cut short while written
-    output = tmp_path / "occupied"
-    output.mkdir()  # where the estimates file should go is a directory: the write fails
+    output = tmp_path / "outputs" / "estimates.yaml"
+    output.parent.mkdir()  # writable when the node starts (it checks); a file by the time it writes
     particles = prepared.lifted.to_cloud()
     empty = PointCloud(particles.xyz[:0], particles.object_id[:0],
                        {k: v[:0] for k, v in particles.fields.items()}, particles.stamp_ns)
@@ -91,6 +91,8 @@ def test_identify_node_waits_out_an_empty_cloud_a_corrupt_checkpoint_a_lost_fram
         with Graph([NodeSpec("identify_node", params)], params_file=fast_params, sink=None) as graph:
             node = graph.nodes["identify_node"]
             assert listener.wait_for(lambda: observed.get_subscription_count() >= 1, 20)
+            output.parent.rmdir()
+            output.parent.write_text("")  # the estimates' directory is gone: the write fails
             lifted.publish(_msg(empty))  # it ended ERROR: "zero-size array to reduction operation"
             node.wait_for_line("is empty: no particle to simulate", 30)
             lifted.publish(_msg(particles))
@@ -108,8 +110,8 @@ def test_identify_node_waits_out_an_empty_cloud_a_corrupt_checkpoint_a_lost_fram
     text = "\n".join(lines)
     assert f"cannot read checkpoint {checkpoints / CHECKPOINT_FILE} (BadZipFile" in text, text
     assert "1 of the 7 frames from stamp" in text and "lost frames 3)" in text, text
-    assert str(output) in failed and "Traceback" in text
+    assert str(output.parent) in failed and "Traceback" in text
     estimates = _estimates(listener)
     assert estimates.frames == 7 and [o.level != ERROR for o in estimates.objects] == [True], estimates.objects
     status = next(s for m in listener.received["/diagnostics"] for s in m.status if s.level == bytes([2]))
-    assert status.name == "mosiv/identify" and str(output) in status.message
+    assert status.name == "mosiv/identify" and str(output.parent) in status.message
