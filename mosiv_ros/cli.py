@@ -75,15 +75,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     if scene.ground is None:
         print("  ground: not declared (no floor in the simulation)")
     else:
-        ground = scene.ground
-        friction = ground.get("friction")
-        print(f"  ground: height {ground.get('height', 0.0):g} m, normal "
-              f"{tuple(ground.get('normal', (0.0, 0.0, 1.0)))}, friction "
+        height, normal = scene.ground.plane()
+        friction = scene.ground.friction
+        print(f"  ground: height {height:g} m, normal {normal}, friction "
               f"{'fitted (not declared)' if friction is None else format(friction, 'g')}")
     for effect in scene.effects:
         print(f"  declared effect {effect.name}: {effect.params}")
     if scene.gripper is not None:
-        print(f"  gripper: {scene.gripper}")
+        print(f"  gripper: {scene.gripper.as_yaml()}")
     print(f"  gripper poses: {len(recording.gripper_poses)}")
     return 0
 

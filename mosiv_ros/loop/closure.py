@@ -281,8 +281,7 @@ class LoopClosure:
         self.families: list[FamilyChoice] = []
         self.flight: FreeFlight | None = None
         self.round = 0
-        self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
-                      if scene.ground is not None else None)
+        self.floor = Floor(*scene.ground.plane()) if scene.ground is not None else None
 
     # --- models ------------------------------------------------------------------------------
 
