@@ -4,14 +4,9 @@ from glob import glob
 
 from setuptools import find_packages, setup
 
+from mosiv_ros.config import STAGE_CONFIGS  # the node list's one home (standard library only)
+
 PACKAGE = "mosiv_ros"
-NODES = (
-    "reconstruction_node",
-    "lifting_node",
-    "identify_node",
-    "prediction_node",
-    "bag_replay_node",
-)
 
 setup(
     name=PACKAGE,
@@ -31,7 +26,7 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [f"{node} = {PACKAGE}.nodes.{node}:main" for node in NODES]
+        "console_scripts": [f"{node} = {PACKAGE}.nodes.{node}:main" for node in STAGE_CONFIGS]
         + [f"mosiv = {PACKAGE}.cli:main"],
     },
 )

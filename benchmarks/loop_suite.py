@@ -28,6 +28,7 @@ from collections import Counter
 from pathlib import Path
 
 from mosiv_ros.cli import run_config
+from mosiv_ros.config import HOLDOUT
 from mosiv_ros.loop.closure import LoopConfig
 from mosiv_ros.loop.report import close_loop
 from mosiv_ros.report import jsonable
@@ -155,7 +156,7 @@ def main() -> int:
     parser.add_argument("paths", nargs="+", type=Path, help="bag directories or directories holding bags")
     parser.add_argument("--params-file", type=Path, default=None)
     parser.add_argument("--device", default=None)
-    parser.add_argument("--holdout", type=float, default=0.3)
+    parser.add_argument("--holdout", type=float, default=HOLDOUT)
     parser.add_argument("--top-k", type=int, default=2)
     parser.add_argument("--max-rounds", type=int, default=3)
     parser.add_argument("--render", action="store_true", help="also score IoU, PSNR, SSIM")

@@ -41,10 +41,11 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.cli import run_config
+from mosiv_ros.config import HOLDOUT
 from mosiv_ros.identify.estimates import Estimates
-from mosiv_ros.identify.fit import Identifier
+from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.problem import build_problem, views_of
-from mosiv_ros.identify.run import fit_settings, problem_options
+from mosiv_ros.identify.run import problem_options
 from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.pipeline import fit_window, prepare
@@ -141,7 +142,7 @@ def main() -> int:
     parser.add_argument("--true-effects", action="store_true",
                         help="declare the recording's undeclared effects at their true values")
     parser.add_argument("--params-file", type=Path, default=Path("config/demo.yaml"))
-    parser.add_argument("--holdout", type=float, default=0.3)
+    parser.add_argument("--holdout", type=float, default=HOLDOUT)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--out", type=Path, default=Path("out/objective_scan.json"))
     args = parser.parse_args()
@@ -162,7 +163,7 @@ def main() -> int:
     problem.sim_config.device = args.device
     declare_densities(asked_densities(args.density, {o.name: true_objects[o.name] for o in problem.objects}),
                       problem.objects)
-    identifier = Identifier(problem, fit_settings(config.identify))
+    identifier = Identifier(problem, FitSettings.of(config.identify))
     labels = [entry.label for entry in identifier.entries]
 
     # the base point: parameters, offsets and velocities

@@ -23,12 +23,11 @@ from pathlib import Path
 
 import yaml
 
-from mosiv_ros.config import STAGE_CONFIGS, describe
+from mosiv_ros.config import HOLDOUT, PIPELINE_NODES, STAGE_CONFIGS, describe
 from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
 LOG = logging.getLogger("mosiv")
-STAGE_NODES = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
 
 
 def default_parameters_yaml() -> str:
@@ -76,15 +75,14 @@ def cmd_info(args: argparse.Namespace) -> int:
     if scene.ground is None:
         print("  ground: not declared (no floor in the simulation)")
     else:
-        ground = scene.ground
-        friction = ground.get("friction")
-        print(f"  ground: height {ground.get('height', 0.0):g} m, normal "
-              f"{tuple(ground.get('normal', (0.0, 0.0, 1.0)))}, friction "
+        height, normal = scene.ground.plane()
+        friction = scene.ground.friction
+        print(f"  ground: height {height:g} m, normal {normal}, friction "
               f"{'fitted (not declared)' if friction is None else format(friction, 'g')}")
     for effect in scene.effects:
         print(f"  declared effect {effect.name}: {effect.params}")
     if scene.gripper is not None:
-        print(f"  gripper: {scene.gripper}")
+        print(f"  gripper: {scene.gripper.as_yaml()}")
     print(f"  gripper poses: {len(recording.gripper_poses)}")
     return 0
 
@@ -294,7 +292,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     window = fit_window(images, args.holdout)
     overrides = {"identify_node": {"output_yaml": str(estimates_file), "window": window}}
     specs = [NodeSpec(name, {**({"scene": bag} if "scene" in _params(name) else {}),
-                             **overrides.get(name, {})}) for name in STAGE_NODES]
+                             **overrides.get(name, {})}) for name in PIPELINE_NODES]
     specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
                                               "wait_for_subscribers": 1}))
     with Graph(specs, params_file=args.params_file, env=domain) as graph:
@@ -350,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="seconds to wait for the replay and the identification")
     graph.add_argument("--out", type=Path, default=Path("out/graph"),
                        help="where identify_node writes the estimates and the report goes")
-    graph.add_argument("--holdout", type=float, default=0.3,
+    graph.add_argument("--holdout", type=float, default=HOLDOUT,
                        help="fraction of the frames kept out of the fit and scored as future")
     graph.add_argument("--domain-id", default=os.environ.get("MOSIV_GRAPH_DOMAIN_ID", "auto"),
                        help="ROS domain of the nodes: 'auto' (a domain no DDS participant on this "
@@ -388,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", type=Path, required=True, help="output directory for the report")
     run.add_argument("--params-file", type=Path, default=None,
                      help="ROS 2 params file (default: config/mosiv.yaml's values)")
-    run.add_argument("--holdout", type=float, default=0.3,
+    run.add_argument("--holdout", type=float, default=HOLDOUT,
                      help="fraction of the frames kept out of the fit and scored as future")
     run.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
     run.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
@@ -400,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--out", type=Path, required=True, help="output directory for the report")
     loop.add_argument("--params-file", type=Path, default=None,
                       help="ROS 2 params file (default: config/mosiv.yaml's values)")
-    loop.add_argument("--holdout", type=float, default=0.3,
+    loop.add_argument("--holdout", type=float, default=HOLDOUT,
                       help="fraction of the frames held out: they decide whether an effect is accepted")
     loop.add_argument("--top-k", type=int, default=2, help="leading candidates refitted per round")
     loop.add_argument("--max-rounds", type=int, default=3, help="most effects added")

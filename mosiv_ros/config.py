@@ -32,6 +32,10 @@ def _param(default: Any, help: str, low: float | None = None, high: float | None
     return field(default=default, metadata=metadata)
 
 
+HOLDOUT = 0.3
+"""Fraction of the frames a fit leaves out to be judged on: the recording's last by ``mosiv run``,
+``mosiv graph`` and ``mosiv close-loop``, the fit window's last when a family is chosen."""
+
 SCENE_HELP = (
     "Scene declaration: a rosbag2 directory (its metadata custom_data 'mosiv.scene'), a YAML "
     "file or inline YAML text; overrides the recording's declaration. Empty: the recording's."
@@ -117,15 +121,12 @@ class LiftingConfig:
 
 
 @dataclass
-class IdentifyConfig:
-    """identify_node: fit per-object material parameters with the differentiable simulator (stage 3)."""
+class FitConfig:
+    """The fit's own parameters: identify_node's that ``identify.fit.FitSettings`` takes too."""
 
-    device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
     cpu_workers: int = _param(
         0, "On the CPU: simulations the batched losses (search, uncertainty) run side by side, one per "
         "core; 0 = every core. The results do not depend on it.", 0, 1024)
-    window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.", 0, 100000)
-    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.", 0.0, 3600.0)
     curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.", 0, 100000)
     iterations: int = _param(20, "Optimiser iterations per curriculum stage.", 0, 100000)
     learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.", 1.0e-6, 10.0)
@@ -141,20 +142,29 @@ class IdentifyConfig:
         1.0e6, "Pa: the fit keeps E and bulk moduli at or below it (WARN when one ends there). A stiffer "
         "object hardly deforms at a reconstruction's millimetres and frame rate, and its simulation takes "
         "more time steps (as the square root of the modulus).", 1.0e4, 1.0e12)
-    uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.", 0.0, 1.0e6)
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.", 0.0, 1.0e6)
     per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
+
+
+@dataclass
+class IdentifyConfig(FitConfig):
+    """identify_node: fit per-object material parameters with the differentiable simulator (stage 3)."""
+
+    device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
+    window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.", 0, 100000)
+    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.", 0.0, 3600.0)
+    uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     density_ratios: bool = _param(
         False, "Also fit the objects' undeclared densities. Only their ratios show (in contact), so "
         "when no density is declared the lowest-id object's stays at its default and sets the scale.")
     families: list[str] = _param(
         ["elastic", "plastic", "sand", "fluid"],
         "Candidate material families of an object whose family the scene does not declare: each "
-        "is fitted on the first 70 % of the window and the one whose rollout is closest (Chamfer) "
-        "to the held-out rest is chosen, then fitted on the whole window. One entry: that family, "
+        f"is fitted on the first {(1 - HOLDOUT) * 100:g} % of the window and the one whose rollout is "
+        "closest (Chamfer) to the held-out rest is chosen, then fitted on the whole window. One entry: that family, "
         "no selection.")
-    checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
     output_yaml: str = _param(
         "material_estimates.yaml", "Where to write the estimates (a prediction_node params file)."
     )
@@ -202,6 +212,10 @@ STAGE_CONFIGS: dict[str, type] = {
     "identify_node": IdentifyConfig,
     "prediction_node": PredictionConfig,
 }
+"""Every node of the package (its executable's name) and its parameters: setup.py installs these."""
+
+PIPELINE_NODES: tuple[str, ...] = tuple(node for node in STAGE_CONFIGS if node != "bag_replay_node")
+"""The stage nodes in pipeline order: every node but the replay that feeds them."""
 
 
 def describe(config_type: type) -> list[tuple[str, Any, str]]:

@@ -20,7 +20,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
-from mosiv_ros.config import IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
+from mosiv_ros.config import HOLDOUT, IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
 from mosiv_ros.identify.problem import views_of
@@ -48,7 +48,7 @@ class RunConfig:
     lifting: LiftingConfig = field(default_factory=LiftingConfig)
     identify: IdentifyConfig = field(default_factory=IdentifyConfig)
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
-    holdout: float = 0.3
+    holdout: float = HOLDOUT
     """Fraction of the recording's frames kept out of the fit, to score predictions on."""
     render: bool = True
     """Score 2D metrics (IoU, PSNR, SSIM) by re-rendering the twin."""

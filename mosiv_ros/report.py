@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mosiv_ros.config import HOLDOUT
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE
-from mosiv_ros.identify.family import HOLDOUT
 from mosiv_ros.io.files import OutputDir
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import logging
 import re
-from dataclasses import replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
 from sim_scenes import scene
 
-from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.config import FitConfig, IdentifyConfig
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
@@ -119,7 +119,7 @@ def _cube_problem(true_params, guess, free, frames=15, observed_points=None, sta
     config = truth.config
     config.ground = Ground(height=0.08, friction=friction_guess)
     problem = FitProblem([ObjectModel("cube", "elastic", guess)], particles, obs, config, free)
-    return problem, FitSettings(**{"curriculum": [6, 0], "iterations": 6, **settings})
+    return problem, FitSettings(**{"curriculum": [6, 0], "iterations": 6, "search_starts": 1, **settings})
 
 
 def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
@@ -325,6 +325,17 @@ def test_a_checkpoint_of_other_fit_settings_is_ignored(tmp_path):
     Identifier(problem, replace(settings, per_object_loss=False), progress=ablation.append).run()
     assert len([r for r in ablation if r["phase"] == "fit"]) == 2 * 2  # two stages of two iterations: afresh
     assert ablation[0]["phase"] == "search"  # afresh, so the search ran again
+
+
+def test_a_fit_takes_every_fit_parameter_of_identify_node_and_has_no_defaults_of_its_own():
+    config = IdentifyConfig(iterations=7, search_starts=2, silhouette_weight=0.0, curriculum=[3, 0],
+                            checkpoint_dir="here", cpu_workers=1)
+    settings = FitSettings.of(config)
+    assert {f.name: getattr(settings, f.name) for f in fields(FitConfig)} == \
+        {f.name: getattr(config, f.name) for f in fields(FitConfig)}
+    settings.curriculum.append(5)
+    assert config.curriculum == [3, 0]  # the fit's settings are its own copy
+    assert FitSettings() == FitSettings.of(IdentifyConfig())  # one home for each default: config
 
 
 def test_observations_and_problem_mismatches_are_clear_errors():

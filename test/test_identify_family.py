@@ -21,7 +21,8 @@ from synth_scenes import record_scene
 from mosiv_ros.config import IdentifyConfig, LiftingConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates
 from mosiv_ros.identify.family import SCORES_FILE, candidate_families, open_objects, select_families
-from mosiv_ros.identify.run import fit_settings, identify_objects, problem_options
+from mosiv_ros.identify.fit import FitSettings
+from mosiv_ros.identify.run import identify_objects, problem_options
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.lifting.lift import UNKNOWN_MATERIAL, LiftedParticles
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig
@@ -121,7 +122,7 @@ def test_a_failing_candidate_scores_infinity_with_its_reason_and_the_selection_g
     # declaration is refused with it when read, so it is set after the scene was checked.
     scene = Scene(objects=[SceneObject(1, "heap", None, {"density": 1600.0})], ground=heap.recording.scene.ground)
     scene.objects[0].params["friction"] = 10.0
-    choices = select_families(heap.frames[:13], heap.lifted, scene, FIT, fit_settings(FIT),
+    choices = select_families(heap.frames[:13], heap.lifted, scene, FIT, FitSettings.of(FIT),
                               problem_options(FIT, ()))
     assert [t.family for t in choices[0].trials] == ["elastic", "sand"]
     for trial in choices[0].trials:

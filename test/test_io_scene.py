@@ -13,6 +13,8 @@ from mosiv_ros.io.scene import (
     MAX_YAML_NODES,
     SCENE_KEY,
     DeclaredEffect,
+    DeclaredGripper,
+    DeclaredGround,
     Scene,
     SceneObject,
     load_scene,
@@ -34,7 +36,7 @@ def test_schema_v1_example_parses():
         SceneObject(1, "red_ball", "elastic", {}),
         SceneObject(2, "clay", "plastic", {"E": 2.0e5}),
     ]
-    assert scene.gripper == {"shape": "sphere", "radius": 0.02}
+    assert scene.gripper == DeclaredGripper("sphere", (0.02,))
     assert scene.extra == {} and scene.ids == [1, 2]
 
 
@@ -44,7 +46,7 @@ def test_scene_round_trips_through_yaml_exactly():
             SceneObject(7, "sand_pile", "sand", {"friction_angle_deg": 30, "E": 1.234567890123e6}),
             SceneObject(65535, "water", "fluid"),
         ],
-        gripper={"shape": "sphere", "radius": 0.015},
+        gripper={"shape": "box", "half_extents": [0.01, 0.02, 0.03], "friction": 0.7},
         extra={"notes": "kept for later schema versions"},
     )
     text = scene_to_yaml(scene)
@@ -125,9 +127,13 @@ def test_an_object_named_scene_is_refused_its_name_is_the_scene_wide_status():
         ),
         ("objects: [7]", "objects[0]", "expected a mapping"),
         ("objects: {id: 1}", "objects", "expected a list"),
-        ("gripper: {shape: sphere}", "gripper.radius", "positive number"),
-        ("gripper: {shape: sphere, radius: -0.01}", "gripper.radius", "positive number"),
-        ("gripper: {radius: 0.01}", "gripper.shape", "non-empty string"),
+        ("gripper: {shape: sphere}", "gripper.radius", "missing"),
+        ("gripper: {shape: sphere, radius: -0.01}", "gripper.radius", "must be positive"),
+        ("gripper: {shape: capsule, radius: 0.01}", "gripper.half_length", "missing"),
+        ("gripper: {radius: 0.01}", "gripper.shape", "missing"),
+        ("gripper: {shape: cone, radius: 0.01}", "gripper.shape", "unknown value 'cone'"),
+        ("gripper: {shape: sphere, radius: 0.01, size: 2}", "gripper.size", "unknown key"),
+        ("gripper: {shape: sphere, radius: 0.01, friction: 6}", "gripper.friction", "outside [0, 5]"),
         ("version: 2", "version", "unsupported schema version 2"),
     ],
 )
@@ -269,7 +275,7 @@ effects:
 
 def test_declared_ground_and_effects_parse_and_round_trip():
     scene = parse_scene(DECLARED_EFFECTS)
-    assert scene.ground == {"height": 0.05, "normal": [0.1, 0, 1], "friction": 0.8}
+    assert scene.ground == DeclaredGround(0.05, (0.1, 0.0, 1.0), 0.8)
     assert scene.effects == [
         DeclaredEffect("drag", {"coefficient": {"ball": 0.5, "clay": 0.1}}),
         DeclaredEffect("wind", {"a": [0.3, 0, 0]}),
@@ -298,7 +304,7 @@ def test_a_scene_without_effects_or_ground_dumps_neither_key():
          "effects[0].params.coefficient.ball", "finite number"),
         ("effects: [{name: drag, params: 3}]", "effects[0].params", "expected a mapping"),
         ("ground: {height: 0, tilt: 3}", "ground.tilt", "unknown key"),
-        ("ground: {normal: [0, 0]}", "ground.normal", "expected 3 numbers"),
+        ("ground: {normal: [0, 0]}", "ground.normal", "expected a list of 3 numbers"),
         ("ground: {normal: [0, 0, 0]}", "ground.normal", "zero vector"),
         ("ground: {friction: -0.1}", "ground.friction", "must be >= 0"),
         ("ground: [0]", "ground", "expected a mapping"),

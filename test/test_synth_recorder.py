@@ -11,7 +11,7 @@ from synth_scenes import FPS, PAIR, pair_scene, record_scene, write_scene
 
 from mosiv_ros.cli import main
 from mosiv_ros.io.bag import iter_raw_messages, list_topics, read_custom_data, read_recording
-from mosiv_ros.io.scene import DeclaredEffect, Scene, SceneObject
+from mosiv_ros.io.scene import DeclaredEffect, DeclaredGround, Scene, SceneObject
 from mosiv_ros.sim import FAMILY_PARAMS
 from mosiv_ros.synth.cameras import look_at, pinhole
 from mosiv_ros.synth.effects import EffectSpec, declaration
@@ -122,7 +122,7 @@ def test_a_declared_effect_is_declared_under_its_type_and_floor_effects_under_th
                EffectSpec("floor_tilt", True, {"normal": [0.0, 0.1, 0.995]}),
                EffectSpec("wind", False, {"a": [1.0, 0.0, 0.0]})]
     ground, declared = declaration(effects, ground_height=0.02)
-    assert ground == {"height": 0.02, "normal": [0.0, 0.1, 0.995]}
+    assert ground == DeclaredGround(height=0.02, normal=(0.0, 0.1, 0.995))
     assert declared == [DeclaredEffect("drag", {"coefficient": {"ball": 2.0}})]
 
 
@@ -218,7 +218,7 @@ def test_a_tilted_floor_is_simulated_and_rendered_on_the_tilted_plane(tmp_path):
     del scene["gripper"]
     bag = record_scene(tmp_path, scene, "tilted")
     recording = read_recording(bag)
-    assert recording.scene.ground == {"height": 0.0}  # undeclared: the plain floor is all it says
+    assert recording.scene.ground == DeclaredGround(height=0.0)  # undeclared: the plain floor is all it says
     assert read_ground_truth(bag)["simulation"]["ground"]["normal"] == pytest.approx(normal.tolist())
     for name in ("cam0", "cam1", "top"):
         camera = recording.cameras[name]

@@ -14,6 +14,7 @@ from synth_scenes import PAIR, write_scene
 
 from mosiv_ros.cli import main
 from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.scene import DeclaredGripper, parse_scene
 from mosiv_ros.synth.layout import lay_out
 from mosiv_ros.synth.scene_file import parse_scene_file, read_scene_file
 
@@ -176,3 +177,26 @@ def test_scene_file_written_by_hand_round_trips_through_the_parser(tmp_path):
     assert [o.name for o in spec.objects] == ["clay", "ball"] and [o.id for o in spec.objects] == [1, 2]
     assert spec.n_frames == 5 and spec.cameras.names == ["cam0", "cam1", "top", "late"]
     assert spec.source.endswith("scene.yaml") and spec.name == "test_pair"
+
+
+@pytest.mark.parametrize("gripper", [
+    {"shape": "box", "half_extents": [0.01, 0.0, 0.01]}, {"shape": "cone", "radius": 0.01},
+    {"shape": "capsule", "radius": 0.01}, {"shape": "sphere", "radius": 0.01, "friction": -1},
+    {"shape": "sphere", "radius": 0.01, "grip": 1}])
+def test_a_scene_file_and_a_bag_declaration_refuse_a_gripper_with_the_same_message(gripper):
+    with pytest.raises(SceneError) as declared:
+        parse_scene(yaml.safe_dump({"gripper": gripper}))
+    trajectory = PAIR["gripper"]["trajectory"]
+    with pytest.raises(SceneError) as filed:
+        parse_scene_file(yaml.safe_dump({**PAIR, "gripper": {**gripper, "trajectory": trajectory}}))
+    assert declared.value.field == filed.value.field
+    assert declared.value.problem == filed.value.problem.replace(", color, trajectory", "")
+
+
+def test_a_recorded_gripper_declares_the_shape_and_size_the_scene_file_gives():
+    spec = parse_scene_file(yaml.safe_dump({**PAIR, "gripper": {
+        "shape": "capsule", "radius": 0.01, "half_length": 0.03, "friction": 0.9,
+        "trajectory": PAIR["gripper"]["trajectory"]}}))
+    assert spec.gripper.declaration() == DeclaredGripper("capsule", (0.01, 0.03))
+    assert spec.gripper.friction == 0.9
+

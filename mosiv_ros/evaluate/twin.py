@@ -67,9 +67,7 @@ def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], record
     """Scores of every observed frame that the prediction covers."""
     images = _images_by_stamp(recording)
     colours = _colours(frames[0], recording, prediction.object_ids) if render else {}
-    ground = recording.scene.ground or {}
-    floor = Floor(float(ground.get("height", 0.0)), tuple(ground.get("normal", (0, 0, 1)))) \
-        if recording.scene.ground is not None else None
+    floor = Floor(*recording.scene.ground.plane()) if recording.scene.ground is not None else None
     scores = []
     for f, frame in enumerate(frames):
         if f >= len(prediction.times):

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.config import HOLDOUT, IdentifyConfig
 from mosiv_ros.evaluate.metrics import chamfer_distance
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
@@ -55,8 +55,6 @@ from mosiv_ros.sim.materials import FAMILY_PARAMS
 
 _LOG = logging.getLogger(__name__)
 
-HOLDOUT = 0.3
-"""Fraction of the fit window held out to score the candidate families."""
 MIN_HELD_OUT = 2
 MIN_FITTED = 3
 SCORES_FILE = "family_scores.json"

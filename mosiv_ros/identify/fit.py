@@ -51,6 +51,7 @@ uncertainty (``identify.uncertainty``), or reading bags and nodes.
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import logging
@@ -61,12 +62,13 @@ import time
 import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
+from mosiv_ros.config import FitConfig
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, silhouette_object_losses
 from mosiv_ros.identify.observations import Observations
@@ -98,30 +100,21 @@ MODULI = ("E", "bulk_modulus")
 
 
 @dataclass
-class FitSettings:
-    """How a fit runs. ``curriculum`` lists window lengths in frames, 0 = the whole sequence."""
+class FitSettings(FitConfig):
+    """How a fit runs: identify_node's fit parameters (``config.FitConfig``) and internal settings.
 
-    curriculum: list[int] = field(default_factory=lambda: [5, 10, 15, 25, 0])
-    iterations: int = 40
-    learning_rate: float = 0.05
-    velocity_learning_rate: float = 0.01
-    chamfer_weight: float = 1.0
-    silhouette_weight: float = 0.0
-    per_object_loss: bool = True
+    The parameters' defaults and meaning are in ``config``; no parameter sets the ones below.
+    """
+
     fit_velocity: bool = True
     resync_every: int = 10
-    windows: int = 3
-    checkpoint_dir: str = ""
     splat_radius: float = 0.005
-    search_samples: int = 32
-    search_rounds: int = 3
-    search_starts: int = 1
     search_decades: float = 1.0
-    search_frames: int = 0
-    max_modulus: float = 1.0e6
-    """Pa: E and the bulk modulus stay at or below it (a fitted value there is only a lower bound)."""
-    cpu_workers: int = 0
-    """Rows of a batch of losses simulated at once on the CPU, each on one core (0: every core)."""
+
+    @classmethod
+    def of(cls, config: FitConfig) -> FitSettings:
+        """The settings of a fit that identify_node's parameters ``config`` ask for."""
+        return cls(**{f.name: copy.deepcopy(getattr(config, f.name)) for f in fields(FitConfig)})
 
     def result_settings(self) -> dict:
         """The settings a fit's result depends on: all but where it checkpoints and how many cores."""

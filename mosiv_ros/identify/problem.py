@@ -180,7 +180,7 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
             masks[step] = dict(frame.masks)
     observations = Observations(frame_dt, points, list(ids), list(views), masks, stamps[0])
     ground = ground_of(scene)
-    if ground is not None and "friction" not in (scene.ground or {}):
+    if ground is not None and scene.ground.friction is None:
         free.append("ground.friction")
     everything = np.concatenate([particles.x] + [p for frame in points for p in frame if len(p)])
     spacing = lifted.lattice_volume ** (1 / 3)
@@ -214,13 +214,12 @@ def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:
 
 
 def ground_of(scene: Scene) -> Ground | None:
-    """The declared ground plane (friction 0.5 unless declared), or None."""
+    """The declared ground plane (the simulator's default friction unless declared), or None."""
     if scene.ground is None:
         return None
-    g = scene.ground
-    return Ground(height=float(g.get("height", 0.0)),
-                  normal=tuple(g.get("normal", (0.0, 0.0, 1.0))),
-                  friction=float(g.get("friction", 0.5)))
+    height, normal = scene.ground.plane()
+    friction = scene.ground.friction
+    return Ground(height=height, normal=normal, friction=Ground.friction if friction is None else friction)
 
 
 def effects_of(scene: Scene, objects: Sequence[ObjectModel]) -> list:
@@ -255,14 +254,8 @@ def _colliders(scene: Scene, poses: Sequence[tuple[int, np.ndarray]], start_ns: 
     if scene.gripper is None or not poses:
         return []
     g = scene.gripper
-    shape = g["shape"]
-    size = {"sphere": lambda: (g["radius"],), "box": lambda: tuple(g["half_extents"]),
-            "capsule": lambda: (g["radius"], g["half_length"])}
-    if shape not in size:
-        raise ProblemError(f"gripper shape {shape!r} is not a simulator collider "
-                           "(sphere, box, capsule)")
     times = np.array([(stamp - start_ns) * 1e-9 for stamp, _ in poses])
     positions = np.array([T[:3, 3] for _, T in poses])
     quaternions = Rotation.from_matrix(np.array([T[:3, :3] for _, T in poses])).as_quat()
-    return [Collider(shape, size[shape](), times, positions, quaternions,
-                     friction=float(g.get("friction", 0.5)), name="gripper")]
+    return [Collider(g.shape, g.size, times, positions, quaternions,
+                     friction=Collider.friction if g.friction is None else g.friction, name="gripper")]

@@ -54,19 +54,6 @@ class Identification:
     families: list[FamilyChoice] = field(default_factory=list)
 
 
-def fit_settings(config: IdentifyConfig) -> FitSettings:
-    """The identifier's settings from identify_node's parameters."""
-    return FitSettings(
-        curriculum=list(config.curriculum), iterations=config.iterations,
-        learning_rate=config.learning_rate, velocity_learning_rate=config.velocity_learning_rate,
-        chamfer_weight=config.chamfer_weight, silhouette_weight=config.silhouette_weight,
-        per_object_loss=config.per_object_loss, checkpoint_dir=config.checkpoint_dir,
-        windows=config.windows, search_samples=config.search_samples,
-        search_rounds=config.search_rounds,
-        search_starts=config.search_starts, search_frames=config.search_frames,
-        max_modulus=config.max_modulus, cpu_workers=config.cpu_workers)
-
-
 def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,
                      config: IdentifyConfig, views: Sequence[View] = (),
                      gripper_poses: Sequence[tuple[int, np.ndarray]] = (),
@@ -77,7 +64,7 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
     choices: list[FamilyChoice] = []
     try:
         options = problem_options(config, views)
-        choices = select_families(frames[:window], lifted, scene, config, fit_settings(config),
+        choices = select_families(frames[:window], lifted, scene, config, FitSettings.of(config),
                                   options, views, gripper_poses, progress)
         options.families = {c.id: c.family for c in choices}
         problem = build_problem(frames[:window], lifted, scene, views, gripper_poses, options)
@@ -106,7 +93,7 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
                 progress: Callable[[dict], None] | None = None, window: int = 0) -> Identification:
     """Fit a built problem (on ``config.device``) and estimate its uncertainty; errors raise."""
     problem.sim_config.device = config.device
-    identifier = Identifier(problem, fit_settings(config), progress)
+    identifier = Identifier(problem, FitSettings.of(config), progress)
     result = identifier.run()
     std = None
     if config.uncertainty:

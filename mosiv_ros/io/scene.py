@@ -19,12 +19,14 @@ Schema, version 1::
                                     # without a family, they limit the candidate families to
                                     # those that use every one of them
     gripper:                        # optional: collider moved along /gripper/pose
-      shape: sphere                 # non-empty string; 'sphere' requires radius
-      radius: 0.02                  # metres, > 0
+      shape: sphere                 # sphere (radius) | box (half_extents) | capsule (radius,
+      radius: 0.02                  #   half_length along local z); metres, > 0
+      friction: 0.5                 # optional: Coulomb coefficient 0..5 (default: the simulator's)
     ground:                         # optional: the floor plane normal . x = height
-      height: 0.0                   # m
-      normal: [0.0, 0.0, 1.0]       # optional: a tilted floor (any non-zero vector)
-      friction: 0.5                 # optional: Coulomb coefficient, >= 0
+      height: 0.0                   # optional: m (0 to the simulator; reconstruction removes
+                                    #   the floor only where it is declared)
+      normal: [0.0, 0.0, 1.0]       # optional: a tilted floor (any non-zero vector; default +z)
+      friction: 0.5                 # optional: Coulomb coefficient, >= 0 (undeclared: fitted)
     effects:                        # optional: effects known to act on the scene
       - name: drag                  # non-empty string, unique; the simulator's effect names
                                     # (gravity, wind, drag, linear_drag, damping) or
@@ -34,11 +36,11 @@ Schema, version 1::
                                     # name to a number
 
 An effect or ground property that is not declared is unknown to the consumer, not absent from
-the data (DESIGN.md: an undeclared effect appears nowhere in the bag). Unknown keys inside an
-object, an effect or the ground are errors (a misspelt ``params`` must not vanish silently);
-unknown top-level keys are kept in ``Scene.extra`` for later schema versions. Gripper keys other
-than ``shape`` (and ``radius`` for spheres) are passed through unchecked: the simulator that uses
-the collider checks them.
+the data (DESIGN.md: an undeclared effect appears nowhere in the bag); a key given as null is not
+declared. Unknown keys inside an object, an effect, the ground or the gripper are errors (a
+misspelt ``params`` must not vanish silently); unknown top-level keys are kept in ``Scene.extra``
+for later schema versions. The ground and the gripper are read as the synthetic recorder's scene
+files read theirs (``io.fields``; ``DeclaredGripper.read`` reads both), with the same messages.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from typing import Any
 import yaml
 
 from mosiv_ros.io.errors import SceneError, not_utf8, shown
+from mosiv_ros.io.fields import Fields, check_number, check_vector, is_number
 
 _LOG = logging.getLogger(__name__)
 
@@ -62,7 +65,10 @@ FAMILIES = ("elastic", "plastic", "sand", "fluid")
 MAX_OBJECT_ID = 65535
 _OBJECT_KEYS = ("id", "name", "family", "params")
 _EFFECT_KEYS = ("name", "params")
-_GROUND_KEYS = ("height", "normal", "friction")
+GRIPPER_SIZES = {"sphere": ("radius",), "box": ("half_extents",), "capsule": ("radius", "half_length")}
+"""The simulator's collider shapes and the keys of their sizes, in ``sim.Collider``'s order."""
+UP = (0.0, 0.0, 1.0)
+"""The normal of a ground that declares none."""
 
 
 class _Loader(yaml.SafeLoader):
@@ -123,10 +129,6 @@ def _expanded_size(node: yaml.Node, sizes: dict[int, float]) -> float:
     return sizes[key]
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
 def _plain(value: float) -> float | int:
     """A plain Python number, so that the declaration always dumps as safe YAML."""
     return int(value) if isinstance(value, int) else float(value)
@@ -168,7 +170,7 @@ class SceneObject:
         if not isinstance(self.params, dict):
             raise SceneError(f"{prefix}params", f"expected a mapping, got {shown(self.params)}")
         for key, value in self.params.items():
-            if not isinstance(key, str) or not _is_number(value) or not math.isfinite(value):
+            if not isinstance(key, str) or not is_number(value) or not math.isfinite(value):
                 raise SceneError(
                     f"{prefix}params.{key}", f"expected a finite number in SI units, got {shown(value)}"
                 )
@@ -221,7 +223,7 @@ class DeclaredEffect:
 
 
 def _finite(value: object, where: str) -> float | int:
-    if not _is_number(value) or not math.isfinite(value):
+    if not is_number(value) or not math.isfinite(value):
         raise SceneError(where, f"expected a finite number in SI units, got {shown(value)}")
     return _plain(value)
 
@@ -237,52 +239,94 @@ def _effect_value(value: object, where: str) -> ParamValue:
     return _finite(value, where)
 
 
-def _check_ground(ground: object) -> dict[str, Any]:
-    if not isinstance(ground, dict):
-        raise SceneError("ground", f"expected a mapping, got {shown(ground)}")
-    unknown = sorted(set(ground) - set(_GROUND_KEYS), key=str)
-    if unknown:
-        raise SceneError(f"ground.{unknown[0]}", f"unknown key (allowed: {', '.join(_GROUND_KEYS)})")
-    checked: dict[str, Any] = {}
-    if "height" in ground:
-        checked["height"] = _finite(ground["height"], "ground.height")
-    if "normal" in ground:
-        normal = ground["normal"]
-        if not isinstance(normal, list) or len(normal) != 3:
-            raise SceneError("ground.normal", f"expected 3 numbers, got {shown(normal)}")
-        checked["normal"] = [_finite(v, f"ground.normal[{i}]") for i, v in enumerate(normal)]
-        if not any(checked["normal"]):
-            raise SceneError("ground.normal", "must not be the zero vector")
-    if "friction" in ground:
-        checked["friction"] = _finite(ground["friction"], "ground.friction")
-        if checked["friction"] < 0:
-            raise SceneError("ground.friction", f"must be >= 0, got {checked['friction']}")
-    return checked
+@dataclass
+class DeclaredGround:
+    """The declared floor plane normal . x = height; a field None is not declared.
+
+    Consumers take an undeclared height as 0 (``plane``) and an undeclared normal as ``UP``; an
+    undeclared friction is the simulator's default to start from, and is fitted.
+    """
+
+    height: float | None = None
+    normal: tuple[float, float, float] | None = None
+    friction: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.height is not None:
+            self.height = check_number(self.height, "ground.height")
+        if self.normal is not None:
+            self.normal = tuple(check_vector(self.normal, "ground.normal", 3).tolist())
+            if not any(self.normal):
+                raise SceneError("ground.normal", "must not be the zero vector")
+        if self.friction is not None:
+            self.friction = check_number(self.friction, "ground.friction", lower=0.0)
+
+    @classmethod
+    def read(cls, f: Fields) -> DeclaredGround:
+        """The ground of the mapping ``f``; SceneError naming the field at fault."""
+        given = {key: f.raw[key] for key in ("height", "normal", "friction") if f.has(key)}
+        f.done()
+        return cls(**given)
+
+    def plane(self) -> tuple[float, tuple[float, float, float]]:
+        """(height, normal) of the plane, an undeclared height 0 and normal ``UP``."""
+        return (0.0 if self.height is None else self.height), (UP if self.normal is None else self.normal)
+
+    def as_yaml(self) -> dict[str, Any]:
+        """The declared fields, as the declaration's YAML has them."""
+        return {key: list(value) if key == "normal" else value
+                for key, value in (("height", self.height), ("normal", self.normal),
+                                   ("friction", self.friction)) if value is not None}
 
 
-def _check_gripper(gripper: object) -> None:
-    if not isinstance(gripper, dict):
-        raise SceneError("gripper", f"expected a mapping, got {shown(gripper)}")
-    shape = gripper.get("shape")
-    if not isinstance(shape, str) or not shape:
-        raise SceneError("gripper.shape", f"expected a non-empty string, got {shown(shape)}")
-    if shape == "sphere":
-        radius = gripper.get("radius")
-        if not _is_number(radius) or not radius > 0:
-            raise SceneError("gripper.radius", f"expected a positive number (m), got {shown(radius)}")
+@dataclass
+class DeclaredGripper:
+    """A kinematic collider moved along /gripper/pose: shape, size as ``sim.Collider`` takes it.
+
+    ``friction`` None: not declared (the simulator's default).
+    """
+
+    shape: str
+    size: tuple[float, ...]
+    friction: float | None = None
+
+    @classmethod
+    def read(cls, f: Fields) -> DeclaredGripper:
+        """The shape, size and friction keys of the mapping ``f`` (other keys are the caller's)."""
+        shape = f.string("shape", choices=tuple(GRIPPER_SIZES))
+        if shape == "box":
+            size = tuple(f.vector("half_extents", 3, positive=True).tolist())
+        else:
+            size = tuple(f.number(key, positive=True) for key in GRIPPER_SIZES[shape])
+        friction = f.number("friction", lower=0.0, upper=5.0) if f.has("friction") else None
+        return cls(shape, size, friction)
+
+    def as_yaml(self) -> dict[str, Any]:
+        """The gripper as the declaration's YAML has it."""
+        values = [list(self.size)] if self.shape == "box" else list(self.size)
+        friction = {} if self.friction is None else {"friction": self.friction}
+        return {"shape": self.shape, **dict(zip(GRIPPER_SIZES[self.shape], values, strict=True)), **friction}
+
+
+def _read_gripper(raw: object) -> DeclaredGripper:
+    f = Fields(raw, "gripper")
+    gripper = DeclaredGripper.read(f)
+    f.done(f" for a {gripper.shape}")
+    return gripper
 
 
 @dataclass
 class Scene:
     """A validated scene declaration (schema v1, see the module docstring).
 
-    Constructing one validates it; an empty scene (no objects) means "nothing declared".
+    Constructing one validates it; an empty scene (no objects) means "nothing declared". A ground
+    or gripper given as a mapping is read as the declaration's YAML.
     """
 
     objects: list[SceneObject] = field(default_factory=list)
-    gripper: dict[str, Any] | None = None
+    gripper: DeclaredGripper | None = None
     extra: dict[str, Any] = field(default_factory=dict)
-    ground: dict[str, Any] | None = None
+    ground: DeclaredGround | None = None
     effects: list[DeclaredEffect] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -301,10 +345,10 @@ class Scene:
                 )
             ids[obj.id] = index
             names[obj.name] = index
-        if self.gripper is not None:
-            _check_gripper(self.gripper)
-        if self.ground is not None:
-            self.ground = _check_ground(self.ground)
+        if self.gripper is not None and not isinstance(self.gripper, DeclaredGripper):
+            self.gripper = _read_gripper(self.gripper)
+        if self.ground is not None and not isinstance(self.ground, DeclaredGround):
+            self.ground = DeclaredGround.read(Fields(self.ground, "ground"))
         effect_names: dict[str, int] = {}
         for index, effect in enumerate(self.effects):
             effect.check(f"effects[{index}]")
@@ -405,9 +449,9 @@ def scene_to_yaml(scene: Scene) -> str:
             entry["params"] = dict(obj.params)
         document["objects"].append(entry)
     if scene.gripper is not None:
-        document["gripper"] = dict(scene.gripper)
+        document["gripper"] = scene.gripper.as_yaml()
     if scene.ground is not None:
-        document["ground"] = dict(scene.ground)
+        document["ground"] = scene.ground.as_yaml()
     if scene.effects:
         document["effects"] = [
             {"name": e.name, **({"params": dict(e.params)} if e.params else {})}

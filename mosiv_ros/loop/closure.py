@@ -80,16 +80,15 @@ import numpy as np
 from scipy.optimize import lsq_linear
 from scipy.stats import chi2
 
-from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.config import HOLDOUT, IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.family import FamilyChoice, select_families, with_family_scores
-from mosiv_ros.identify.fit import OFFSET, FitProblem, Identifier
+from mosiv_ros.identify.fit import OFFSET, FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import build_problem
 from mosiv_ros.identify.run import (
     Identification,
     fit_problem,
-    fit_settings,
     phase_progress,
     problem_options,
 )
@@ -126,7 +125,7 @@ NOTHING, EXPLAINED, UNEXPLAINED, PARTLY, UNMODELLED = (
 class LoopConfig:
     """Settings of the loop closure (see the module docstring for each one's role)."""
 
-    holdout: float = 0.3
+    holdout: float = HOLDOUT
     top_k: int = 2
     min_explained: float = 0.5
     significance: float = 1.0
@@ -282,8 +281,7 @@ class LoopClosure:
         self.families: list[FamilyChoice] = []
         self.flight: FreeFlight | None = None
         self.round = 0
-        self.floor = (Floor(float(scene.ground.get("height", 0.0)), tuple(scene.ground.get("normal", (0, 0, 1))))
-                      if scene.ground is not None else None)
+        self.floor = Floor(*scene.ground.plane()) if scene.ground is not None else None
 
     # --- models ------------------------------------------------------------------------------
 
@@ -382,7 +380,7 @@ class LoopClosure:
         """``model`` with ``scene``'s declaration instead of its own, rolled out unfitted."""
         problem = self.problem(scene, [], ctx, model.observations)
         _start_at(problem, model.estimates)
-        identifier = Identifier(problem, fit_settings(self.identify))
+        identifier = Identifier(problem, FitSettings.of(self.identify))
         fitted = model.identification.identifier
         identifier.offsets[:] = fitted.offsets
         identifier._apply(identifier._pack(), model.identification.result.velocity)
@@ -678,7 +676,7 @@ class LoopClosure:
         Chosen once (``identify.family``); every model of the loop then fits that family.
         """
         return select_families(self.given.frames[: self.window], self.given.lifted, self.scene,
-                               self.identify, fit_settings(self.identify),
+                               self.identify, FitSettings.of(self.identify),
                                problem_options(self.identify, self.views), self.views,
                                self.gripper_poses, phase_progress(self.progress, "family"))
 

@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -149,7 +149,7 @@ def _with_effect(scene: Scene, effect: DeclaredEffect) -> Scene:
 
 def _with_ground(scene: Scene, **changes: object) -> Scene:
     result = copy.deepcopy(scene)
-    return Scene(result.objects, result.gripper, result.extra, {**result.ground, **changes},
+    return Scene(result.objects, result.gripper, result.extra, replace(result.ground, **changes),
                  result.effects)
 
 
@@ -273,7 +273,7 @@ class FloorTiltCandidate(Candidate):
     LABELS = ("ground.normal[0]", "ground.normal[1]")
 
     def applicable(self, ctx: Context) -> bool:
-        return ctx.scene.ground is not None and "normal" not in ctx.scene.ground
+        return ctx.scene.ground is not None and ctx.scene.ground.normal is None
 
     def knobs(self, ctx: Context) -> list[Knob]:
         return [Knob(label, 0.0, 0.15, -0.7, 0.7) for label in self.LABELS]
@@ -302,10 +302,10 @@ class FloorFrictionCandidate(Candidate):
     LABEL = "ground.friction"
 
     def applicable(self, ctx: Context) -> bool:
-        return ctx.scene.ground is not None and "friction" in ctx.scene.ground
+        return ctx.scene.ground is not None and ctx.scene.ground.friction is not None
 
     def knobs(self, ctx: Context) -> list[Knob]:
-        declared = float(ctx.scene.ground["friction"])
+        declared = ctx.scene.ground.friction
         return [Knob(self.LABEL, declared, 0.1, 0.0, 5.0)]
 
     def declare(self, scene: Scene, values: dict[str, float], ctx: Context) -> Scene:

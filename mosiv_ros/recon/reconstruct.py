@@ -223,11 +223,12 @@ class Reconstructor:
 
 def ground_plane(scene: Scene | None) -> tuple[np.ndarray, float] | None:
     """(unit normal, height) of the scene's declared ground, if its height is declared."""
-    if scene is None or not scene.ground or "height" not in scene.ground:
+    if scene is None or scene.ground is None or scene.ground.height is None:
         return None
-    normal = np.asarray(scene.ground.get("normal", (0.0, 0.0, 1.0)), dtype=np.float64)
+    height, normal = scene.ground.plane()
+    normal = np.asarray(normal, dtype=np.float64)
     norm = float(np.linalg.norm(normal))
-    return normal / norm, float(scene.ground["height"]) / norm
+    return normal / norm, height / norm
 
 
 def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarray],

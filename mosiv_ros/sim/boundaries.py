@@ -27,12 +27,14 @@ from mosiv_ros.sim.params import ParamSpec
 
 WALL_CELLS = 3
 COLLIDER_SHAPES = {"sphere": 0, "box": 1, "capsule": 2}
+GROUND_FRICTION = 0.5
+"""Coulomb coefficient of a ground whose friction nobody gives (the fit's starting value)."""
 
 GROUND_PARAMS = (
     ParamSpec("ground.height", 0.0, -1.0e3, 1.0e3, "m", "ground plane offset along its normal"),
     ParamSpec("ground.normal", (0.0, 0.0, 1.0), -1.0, 1.0, "", "ground plane normal (normalised "
               "in the kernel)", size=3),
-    ParamSpec("ground.friction", 0.5, 0.0, 5.0, "", "Coulomb coefficient of the ground"),
+    ParamSpec("ground.friction", GROUND_FRICTION, 0.0, 5.0, "", "Coulomb coefficient of the ground"),
 )
 
 
@@ -42,7 +44,7 @@ class Ground:
 
     height: float = 0.0
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
-    friction: float = 0.5
+    friction: float = GROUND_FRICTION
 
     def initial(self) -> dict[str, object]:
         return {"ground.height": self.height, "ground.normal": self.normal,

@@ -19,7 +19,8 @@ from object name to number, objects left out getting the simulator's default):
   a sin(2 pi x / wavelength), m/s^2 and m (``PeriodicField``; outside the loop closure's library).
 - ``floor_tilt`` {normal: [nx, ny, nz]}: the floor plane's normal (it still passes through the
   ground height along that normal); the rendered floor tilts with it.
-- ``floor_friction`` {friction}: the floor's Coulomb coefficient instead of the nominal 0.5.
+- ``floor_friction`` {friction}: the floor's Coulomb coefficient instead of the nominal one
+  (``sim.boundaries.GROUND_FRICTION``).
 - ``camera_time_offset`` {camera, offset}: that camera shows the scene at t + offset (s) while
   its frames are stamped t (a badly synchronised camera).
 - ``mask_noise`` {boundary, speckle}: each object-boundary pixel takes the label of a random
@@ -39,17 +40,17 @@ from typing import Any
 import numpy as np
 
 from mosiv_ros.io.errors import SceneError, shown
-from mosiv_ros.io.scene import DeclaredEffect
+from mosiv_ros.io.fields import Fields, check_number
+from mosiv_ros.io.scene import DeclaredEffect, DeclaredGround
 from mosiv_ros.sim import BUILTIN_EFFECTS, Effect, Gravity, Ground
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.sim.params import ParamSpec
-from mosiv_ros.synth.fields import Fields, check_number
 
 FLOOR_EFFECTS = ("floor_tilt", "floor_friction")
 RECORDER_EFFECTS = ("camera_time_offset", "mask_noise")
 EFFECT_TYPES = (*BUILTIN_EFFECTS, *FLOOR_EFFECTS, *RECORDER_EFFECTS)
 NOMINAL_GROUND = Ground()
-"""The floor every consumer assumes unless told otherwise: normal +z, friction 0.5."""
+"""The floor every consumer assumes unless told otherwise: normal +z, the nominal friction."""
 
 
 @dataclass
@@ -159,7 +160,7 @@ def camera_offsets(effects: list[EffectSpec]) -> dict[str, float]:
     return {offset.params["camera"]: offset.params["offset"]} if offset else {}
 
 
-def declaration(effects: list[EffectSpec], ground_height: float) -> tuple[dict[str, Any], list[DeclaredEffect]]:
+def declaration(effects: list[EffectSpec], ground_height: float) -> tuple[DeclaredGround, list[DeclaredEffect]]:
     """(declared ground, declared effects) for the bag's scene declaration.
 
     The ground always declares its height (the floor is in plain view); its normal and friction
@@ -178,7 +179,7 @@ def declaration(effects: list[EffectSpec], ground_height: float) -> tuple[dict[s
             declared.append(DeclaredEffect(effect.type, {"offset": {effect.params["camera"]: effect.params["offset"]}}))
         else:
             declared.append(DeclaredEffect(effect.type, dict(effect.params)))
-    return ground, declared
+    return DeclaredGround(**ground), declared
 
 
 def add_mask_noise(mask: np.ndarray, effects: list[EffectSpec], n_objects: int,

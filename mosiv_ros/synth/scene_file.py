@@ -80,15 +80,14 @@ import numpy as np
 import yaml
 
 from mosiv_ros.io.errors import SceneError, shown
+from mosiv_ros.io.fields import Fields
 from mosiv_ros.io.recording import CameraIntrinsics
-from mosiv_ros.io.scene import FAMILIES, load_yaml, read_scene_text
-from mosiv_ros.sim import FAMILY_PARAMS, MATERIAL_PARAMS
+from mosiv_ros.io.scene import FAMILIES, DeclaredGripper, load_yaml, read_scene_text
+from mosiv_ros.sim import FAMILY_PARAMS, MATERIAL_PARAMS, Collider
 from mosiv_ros.synth import cameras as rig
 from mosiv_ros.synth.effects import EffectSpec, check_unique, parse_effect
-from mosiv_ros.synth.fields import Fields
 
 SHAPES = ("box", "sphere", "cylinder", "torus", "mesh")
-GRIPPER_SHAPES = ("sphere", "box", "capsule")
 PLACEMENTS = ("ring", "hemisphere", "explicit")
 TEXTURES = ("none", "checker")
 DEFAULT_START_NS = 1_700_000_000_000_000_000
@@ -154,11 +153,9 @@ class GripperSpec:
     positions: np.ndarray
     orientations: np.ndarray
 
-    def declaration(self) -> dict[str, Any]:
+    def declaration(self) -> DeclaredGripper:
         """The gripper's entry in the bag's scene declaration: its shape and size."""
-        keys = {"sphere": ("radius",), "box": ("half_extents",), "capsule": ("radius", "half_length")}
-        values = [list(self.size)] if self.shape == "box" else list(self.size)
-        return {"shape": self.shape, **dict(zip(keys[self.shape], values, strict=True))}
+        return DeclaredGripper(self.shape, self.size)
 
 
 @dataclass
@@ -381,14 +378,9 @@ def _color(f: Fields, key: str, default: list[float]) -> np.ndarray:
 
 
 def _gripper(f: Fields) -> GripperSpec:
-    shape = f.string("shape", choices=GRIPPER_SHAPES)
-    if shape == "sphere":
-        size: tuple[float, ...] = (f.number("radius", positive=True),)
-    elif shape == "box":
-        size = tuple(f.vector("half_extents", 3, positive=True))
-    else:
-        size = (f.number("radius", positive=True), f.number("half_length", positive=True))
-    friction = f.number("friction", 0.5, lower=0.0, upper=5.0)
+    collider = DeclaredGripper.read(f)
+    shape = collider.shape
+    friction = Collider.friction if collider.friction is None else collider.friction
     color = _color(f, "color", [90.0, 90.0, 100.0])
     keys = f.items("trajectory")
     if not keys:
@@ -406,7 +398,7 @@ def _gripper(f: Fields) -> GripperSpec:
         if len(times) > 1 and times[-1] <= times[-2]:
             raise SceneError(key.path("t"), f"keyframe times must increase, got {times[-2]} then {times[-1]}")
     f.done(f" for a {shape}")
-    return GripperSpec(shape, size, friction, color, np.array(times), np.array(positions),
+    return GripperSpec(shape, collider.size, friction, color, np.array(times), np.array(positions),
                        np.array(orientations))
 
 

@@ -1,10 +1,11 @@
 """Reading one mapping of a YAML description field by field, naming the field in every error.
 
-What it is for: the scene-file parser of the synthetic recorder (``scene_file``, ``effects``):
-typed getters with defaults and range checks, and a final check that no key was left unread (a
-misspelt key must not vanish silently). Every problem is a ``SceneError`` whose ``field`` is the
-full path, e.g. ``objects[1].radius``.
-What it is not for: the bag's scene declaration (``mosiv_ros.io.scene`` validates that).
+What it is for: the one way scene YAML is checked, by the bag's scene declaration's ground and
+gripper (``io.scene``) and by the synthetic recorder's scene files (``synth.scene_file``,
+``synth.effects``): typed getters with defaults and range checks, and a final check that no key
+was left unread (a misspelt key must not vanish silently). Every problem is a ``SceneError``
+whose ``field`` is the full path, e.g. ``objects[1].radius``.
+What it is not for: what a scene means (the schemas are in ``io.scene`` and ``synth.scene_file``).
 """
 
 from __future__ import annotations
