@@ -4,8 +4,9 @@ Subscribes to ``/mosiv/observed_objects``; lifts the first frame in which every 
 (parameter ``scene``) has an occupied voxel (without a declaration: the first frame with any) with
 the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, latched (reliable +
 transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
-(float32), object_id, segment (uint16) and material (uint8, the family's index in
-``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared). The next ``consensus_frames``
+(float32), object_id, segment (uint16), material (uint8, the family's index in
+``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared), and boundary_beta, boundary_eps
+(float64: the node's parameters, which the consumers' boundary volumes use). The next ``consensus_frames``
 clouds trim each object's hull first (``mosiv_ros.lifting.consensus``): the node lifts once they
 have come, or ``consensus_timeout`` seconds after the first complete frame with those that did.
 Later frames are ignored.
