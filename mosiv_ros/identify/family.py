@@ -44,7 +44,7 @@ from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.observations import Observations, View
-from mosiv_ros.identify.problem import ProblemOptions, build_problem, declared_params, object_name
+from mosiv_ros.identify.problem import ProblemOptions, build_problem, object_name
 from mosiv_ros.io.files import write_text
 from mosiv_ros.io.scene import Scene, scene_to_yaml
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -52,6 +52,7 @@ from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS
+from mosiv_ros.simulation import declared_params
 
 _LOG = logging.getLogger(__name__)
 

@@ -75,6 +75,7 @@ from mosiv_ros.lifting.lift import boundary_volume
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
+from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
 
@@ -178,10 +179,6 @@ class Boundary:
 
     def inside(self, offsets_per_particle: np.ndarray) -> np.ndarray:
         return self.sdf + offsets_per_particle <= 0.0
-
-
-OFFSET = "boundary_offset"
-"""The entry name of a boundary offset (not a simulator parameter)."""
 
 
 @dataclass

@@ -83,7 +83,7 @@ from scipy.stats import chi2
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.family import FamilyChoice, select_families, with_family_scores
-from mosiv_ros.identify.fit import OFFSET, FitProblem, Identifier
+from mosiv_ros.identify.fit import FitProblem, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import build_problem
 from mosiv_ros.identify.run import (
@@ -112,6 +112,7 @@ from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
+from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ paths, shape) per unit of the knob. The effect explains the
 residual to the degree that a combination of those columns, with the knobs inside their ranges,
 reproduces it (``closure``). Adding an effect means adding a ``Candidate`` here (and, for a new
 physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes. A sensor
-effect's ``declare`` adds a declaration the simulator ignores (``identify.problem``'s
+effect's ``declare`` adds a declaration the simulator ignores (``mosiv_ros.simulation``'s
 ``SENSOR_EFFECTS``); its ``observe`` does the work.
 
 The library (``LIBRARY``):
