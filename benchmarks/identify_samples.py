@@ -32,9 +32,9 @@ import numpy as np
 from objective_scan import asked_densities, declare_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
-from mosiv_ros.io.files import OutputDir
-from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
-from mosiv_ros.report import jsonable
+from mosiv_ros.io.files import OutputDir, jsonable
+from mosiv_ros.pipeline import run_prepared
+from mosiv_ros.prepare import RunConfig, prepare
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 

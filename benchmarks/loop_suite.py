@@ -28,9 +28,9 @@ from collections import Counter
 from pathlib import Path
 
 from mosiv_ros.cli import run_config
+from mosiv_ros.io.files import jsonable
 from mosiv_ros.loop.closure import LoopConfig
 from mosiv_ros.loop.report import close_loop
-from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 STANDS_FOR = {"gravity": "wind"}

@@ -45,10 +45,11 @@ from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import Identifier
 from mosiv_ros.identify.problem import build_problem, views_of
 from mosiv_ros.identify.run import fit_settings, problem_options
+from mosiv_ros.io.files import jsonable
 from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.pipeline import fit_window, prepare
-from mosiv_ros.report import jsonable
+from mosiv_ros.pipeline import fit_window
+from mosiv_ros.prepare import prepare
 from mosiv_ros.sim import BUILTIN_EFFECTS
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 

@@ -184,7 +184,7 @@ def load_params_file(path: Path | None) -> dict[str, object]:
 
 def run_config(params_file: Path | None, device: str | None = None, **options: object):
     """The pipeline's ``RunConfig`` from a params file, ``device`` (if given) for every stage."""
-    from mosiv_ros.pipeline import RunConfig
+    from mosiv_ros.prepare import RunConfig
 
     configs = load_params_file(params_file)
     config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
@@ -281,7 +281,8 @@ def cmd_graph(args: argparse.Namespace) -> int:
     from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
     from mosiv_ros.io.bag import list_topics
     from mosiv_ros.io.files import OutputDir
-    from mosiv_ros.pipeline import evaluate, fit_window, prepare
+    from mosiv_ros.pipeline import evaluate, fit_window
+    from mosiv_ros.prepare import prepare
 
     domain, line = graph_domain(args.domain_id, dict(os.environ))
     print(f"mosiv graph: {line}", flush=True)  # first: where to look (rviz, ros2 topic) and why
