@@ -7,6 +7,7 @@ import pickle
 import pytest
 
 from mosiv_ros.cli import main
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.errors import MAX_SHOWN_CHARS, BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
@@ -15,7 +16,6 @@ from mosiv_ros.io.scene import (
     DeclaredEffect,
     Scene,
     SceneObject,
-    load_scene,
     parse_scene,
     scene_to_yaml,
 )

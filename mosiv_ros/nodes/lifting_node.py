@@ -20,9 +20,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import LiftingConfig
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.recording import PointCloud
-from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting import lift, missing_objects
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
 from mosiv_ros.recon import VOXEL_FIELD
