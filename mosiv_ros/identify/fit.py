@@ -294,6 +294,16 @@ class Identifier:
             raise ValueError(f"nothing to fit: none of {free} applies to these objects")
         return entries
 
+    def start_from(self, offsets: np.ndarray, velocity: np.ndarray) -> None:
+        """Set ``sim`` up to roll out, unfitted, from the parameters it holds.
+
+        With these boundary offsets (K,) and initial velocities (K, 6: linear m/s, angular rad/s
+        about each centroid); for a caller that rolls ``sim`` out without fitting (the loop
+        closure's probes).
+        """
+        self.offsets[:] = offsets
+        self._apply(self._pack(), velocity)
+
     def _pack(self) -> np.ndarray:
         u = [e.coordinate.to_u(self.offsets[e.index[1]] if e.name == OFFSET
                                else self.sim.params.get(e.name)[e.index]) for e in self.entries]

@@ -384,9 +384,7 @@ class LoopClosure:
         problem = self.problem(scene, [], ctx, model.observations)
         _start_at(problem, model.estimates)
         identifier = Identifier(problem, fit_settings(self.identify))
-        fitted = model.identification.identifier
-        identifier.offsets[:] = fitted.offsets
-        identifier._apply(identifier._pack(), model.identification.result.velocity)
+        identifier.start_from(model.identification.identifier.offsets, model.identification.result.velocity)
         return self.rollout(identifier, model.observations)
 
     def analyse(self, prediction: Prediction, observations: Observations) -> ResidualAnalysis:
