@@ -28,7 +28,6 @@ from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
 LOG = logging.getLogger("mosiv")
-STAGE_NODES = ("reconstruction_node", "lifting_node", "identify_node", "prediction_node")
 
 
 def default_parameters_yaml() -> str:
@@ -277,7 +276,7 @@ def graph_domain(choice: str, environ: dict[str, str]) -> tuple[dict[str, str], 
 def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
-    from mosiv_ros.graph import Graph, NodeSpec
+    from mosiv_ros.graph import Graph, graph_nodes
     from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
     from mosiv_ros.io.bag import list_topics
     from mosiv_ros.io.files import OutputDir
@@ -294,11 +293,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
                  if topic.endswith("/color/image_raw"))
     window = fit_window(images, args.holdout)
     overrides = {"identify_node": {"output_yaml": str(estimates_file), "window": window}}
-    specs = [NodeSpec(name, {**({"scene": bag} if "scene" in _params(name) else {}),
-                             **overrides.get(name, {})}) for name in STAGE_NODES]
-    specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
-                                              "wait_for_subscribers": 1}))
-    with Graph(specs, params_file=args.params_file, env=domain) as graph:
+    with Graph(graph_nodes(bag, float(args.rate), bag, overrides), params_file=args.params_file, env=domain) as graph:
         try:  # a node that fails on the way, or says so, ends the wait at once: which and how
             graph.wait_for_line("identify_node", "identification done",
                                 args.timeout - (time.perf_counter() - start),
@@ -330,10 +325,6 @@ def _print_summary(result) -> None:
     for part in ("observed", "future"):
         if part in metrics and "cd" in metrics[part]:
             print(f"{part} frames: CD {metrics[part]['cd'] * 1e3:.2f} mm")
-
-
-def _params(node: str) -> set[str]:
-    return {name for name, _, _ in describe(STAGE_CONFIGS[node])}
 
 
 def build_parser() -> argparse.ArgumentParser:
