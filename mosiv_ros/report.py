@@ -19,7 +19,7 @@ import numpy as np
 
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE
 from mosiv_ros.identify.family import HOLDOUT
-from mosiv_ros.io.files import OutputDir, jsonable
+from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 
@@ -27,7 +27,7 @@ from mosiv_ros.recon.reconstruct import ObservedFrame
 def write_report(out: OutputDir, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
                  fitted: int) -> list[Path]:
     """Write report.json, report.md and the plots (each whole: ``io.files``); return their paths."""
-    paths = [out.write_text("report.json", json.dumps(jsonable(report), indent=1))]
+    paths = [out.write_text("report.json", json.dumps(plain(report, null_nonfinite=True), indent=1))]
     plots = _plots(out, report, prediction, frames, fitted)
     paths.append(out.write_text("report.md", _markdown(report, [p.name for p in plots])))
     return paths + plots

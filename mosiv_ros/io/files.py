@@ -14,7 +14,7 @@ What it is for:
 - ``check_new_path(path)``: the same check for an output that must not exist yet (a bag, a
   suite), made before minutes of simulation rather than after; ``check_output_file(path)`` for
   one file (identify_node's ``output_yaml``, checked when the node starts);
-- ``jsonable(value)``: a report's dictionary with numpy values made plain, for ``json.dumps``.
+- ``plain(value)``: a report's or a sidecar's dictionary with numpy values made plain Python.
 
 What it is not for: writing bags (``io.bag``, with rosbags).
 """
@@ -164,16 +164,22 @@ class OutputDir:
                 and name not in (MANIFEST, "", ".", "..")]
 
 
-def jsonable(value):
-    """``value`` with numpy types made plain and non-finite floats made None (JSON null)."""
+def plain(value: Any, null_nonfinite: bool = False) -> Any:
+    """``value`` with numpy arrays, numpy scalars and paths made plain Python, for YAML or JSON.
+
+    Nested in dicts, lists and tuples too. With ``null_nonfinite`` (JSON has no inf or NaN),
+    non-finite floats become None (null).
+    """
     if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
+        return {str(k): plain(v, null_nonfinite) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
+        return [plain(v, null_nonfinite) for v in value]
     if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
+        return plain(value.tolist(), null_nonfinite)
     if isinstance(value, np.generic):
         value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
+    if isinstance(value, Path):
+        return str(value)
+    if null_nonfinite and isinstance(value, float) and not math.isfinite(value):
         return None
     return value
