@@ -32,9 +32,9 @@ import numpy as np
 from objective_scan import asked_densities, declare_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
-from mosiv_ros.io.files import OutputDir
-from mosiv_ros.pipeline import RunConfig, prepare, run_prepared
-from mosiv_ros.report import jsonable
+from mosiv_ros.io.files import OutputDir, plain
+from mosiv_ros.pipeline import run_prepared
+from mosiv_ros.prepare import RunConfig, prepare
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 
@@ -84,20 +84,20 @@ def main() -> int:
     for bag in args.bags:
         results.append({"loss": "per_object", **one(bag, config, args.out.parent / bag.name,
                                                     args.true_particles, args.density)})
-        print(json.dumps(jsonable(results[-1]))[:2000], flush=True)
+        print(json.dumps(plain(results[-1], null_nonfinite=True))[:2000], flush=True)
         if args.ablation:
             union = dataclasses.replace(config, identify=dataclasses.replace(config.identify,
                                                                           per_object_loss=False))
             results.append({"loss": "scene_level",
                             **one(bag, union, args.out.parent / f"{bag.name}_scene_level",
                                   args.true_particles, args.density)})
-            print(json.dumps(jsonable(results[-1]))[:2000], flush=True)
+            print(json.dumps(plain(results[-1], null_nonfinite=True))[:2000], flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(jsonable({
+    args.out.write_text(json.dumps(plain({
         "benchmark": "identify_samples", "device": args.device, "host": platform.node(),
         "python": sys.version.split()[0], "params_file": str(args.params_file),
         "true_particles": args.true_particles, "density": args.density,
-        "results": results}), indent=1))
+        "results": results}, null_nonfinite=True), indent=1))
     print(f"wrote {args.out}")
     return 0
 

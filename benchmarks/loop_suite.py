@@ -29,9 +29,9 @@ from pathlib import Path
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.config import HOLDOUT
+from mosiv_ros.io.files import plain
 from mosiv_ros.loop.closure import LoopConfig
 from mosiv_ros.loop.report import close_loop
-from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 STANDS_FOR = {"gravity": "wind"}
@@ -181,7 +181,7 @@ def main() -> int:
                "params_file": str(args.params_file), "device": args.device, "results": results,
                "wrong_names": sum(r.get("outcome") == "wrong name" for r in results),
                "right": sum(r.get("outcome") == "right" for r in results)}
-    (args.out / "loop_suite.json").write_text(json.dumps(jsonable(summary), indent=1))
+    (args.out / "loop_suite.json").write_text(json.dumps(plain(summary, null_nonfinite=True), indent=1))
     (args.out / "loop_suite.md").write_text(markdown(results))
     print(markdown(results))
     print(f"wrote {args.out / 'loop_suite.json'} and {args.out / 'loop_suite.md'}")

@@ -46,10 +46,11 @@ from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.problem import build_problem, views_of
 from mosiv_ros.identify.run import problem_options
+from mosiv_ros.io.files import plain
 from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.pipeline import fit_window, prepare
-from mosiv_ros.report import jsonable
+from mosiv_ros.pipeline import fit_window
+from mosiv_ros.prepare import prepare
 from mosiv_ros.sim import BUILTIN_EFFECTS
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 
@@ -218,13 +219,14 @@ def main() -> int:
         print(f"{r['entry'] or 'base':28s} {value:>10s} {r['loss'] * 1e5:10.2f}  "
               + " ".join(f"{v * 1e5:9.2f}" for v in r["objects"].values()))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(jsonable({
+    args.out.write_text(json.dumps(plain({
         "benchmark": "objective_scan", "bag": str(args.bag), "device": args.device,
         "host": platform.node(), "python": sys.version.split()[0], "argv": sys.argv[1:],
         "frames": window, "particles": {n: int((identifier.index == k).sum()) for k, n in enumerate(names)},
         "density": {obj.name: obj.params.get("density") for obj in problem.objects},
         "base": {label: values.get(label, 0.0) for label in labels},
-        "velocity": dict(zip(names, v0.tolist(), strict=True)), "seconds": seconds, "rows": results}), indent=1))
+        "velocity": dict(zip(names, v0.tolist(), strict=True)), "seconds": seconds, "rows": results},
+        null_nonfinite=True), indent=1))
     print(f"wrote {args.out}")
     return 0
 

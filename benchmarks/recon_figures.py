@@ -6,7 +6,7 @@
 For every bag with the recorder's ``ground_truth_particles.npz`` sidecar (or the analytic spheres
 of ``mosiv_ros.synth.shapes``, as 3 mm lattice particles filling each ball), reconstruct every frame
 with and without depth and print, per object and frame, the Chamfer distance (mm; the mean of the
-two one-sided mean nearest-neighbour distances, ``mosiv_ros.recon.evaluation``) between the
+two one-sided mean nearest-neighbour distances, ``mosiv_ros.metrics``) between the
 object's occupied voxel centres and its ground-truth particles, and as a fraction of the object's
 size (largest edge of the particles' bounding box plus one particle). ``floor`` is the same
 distance for a perfect reconstruction: the voxels whose centres lie in the cubes the ground-truth
@@ -31,9 +31,10 @@ from scipy.spatial import cKDTree
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
+from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon import reconstruct_recording
 from mosiv_ros.recon.carving import Lattice
-from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
+from mosiv_ros.recon.evaluation import union_of_balls_volume
 from mosiv_ros.recon.reconstruct import Reconstructor
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 from mosiv_ros.synth.shapes import START_NS, make_shapes_recording, shapes_spheres
@@ -96,7 +97,7 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
                 points = truth.of_object(object_id)[index].astype(np.float64)
                 size = float(np.max(points.max(axis=0) - points.min(axis=0))) + side
                 estimate = frame.objects.get(object_id)
-                cd = chamfer(estimate.occupancy, points)[0] if estimate is not None else float("inf")
+                cd = chamfer_distance(estimate.occupancy, points) if estimate is not None else float("inf")
                 nearer = 0.0
                 if estimate is not None and len(trees) > 1:
                     own = trees[object_id].query(estimate.occupancy)[0]
@@ -105,7 +106,7 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
                     nearer = float(np.mean(other < own))
                 row = result["objects"].setdefault(str(object_id), {}).setdefault(
                     f"depth={use_depth}", [])
-                floor = chamfer(perfect_voxels(points, side, lattice), points)[0]
+                floor = chamfer_distance(perfect_voxels(points, side, lattice), points)
                 row.append({"frame": index, "cd_mm": cd * 1e3, "relative": cd / size,
                             "floor_mm": floor * 1e3, "nearer_other": nearer, "warnings": len(frame.warnings)})
         if use_depth:
@@ -115,7 +116,7 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
             first = int(np.argmin(np.abs(truth.stamps_ns - lifted.stamp_ns)))
             cells = np.floor(lifted.x / LiftingConfig().particle_spacing).astype(np.int64)
             _, counts = np.unique(cells, axis=0, return_counts=True)
-            floor = (recording.scene.ground or {}).get("height")
+            floor = recording.scene.ground.height if recording.scene.ground else None
             result["lift"] = {"shared_cells": int((counts > 1).sum()), "frame": first, "objects": {
                 str(i): {"particles": int((lifted.object_id == i).sum()),
                          "volume_cm3": lifted.object_volume(i) * 1e6,

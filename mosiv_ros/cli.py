@@ -23,7 +23,7 @@ from pathlib import Path
 
 import yaml
 
-from mosiv_ros.config import HOLDOUT, PIPELINE_NODES, STAGE_CONFIGS, describe
+from mosiv_ros.config import HOLDOUT, STAGE_CONFIGS, describe
 from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
@@ -182,7 +182,7 @@ def load_params_file(path: Path | None) -> dict[str, object]:
 
 def run_config(params_file: Path | None, device: str | None = None, **options: object):
     """The pipeline's ``RunConfig`` from a params file, ``device`` (if given) for every stage."""
-    from mosiv_ros.pipeline import RunConfig
+    from mosiv_ros.prepare import RunConfig
 
     configs = load_params_file(params_file)
     config = RunConfig(configs["reconstruction_node"], configs["lifting_node"],
@@ -275,11 +275,12 @@ def graph_domain(choice: str, environ: dict[str, str]) -> tuple[dict[str, str], 
 def cmd_graph(args: argparse.Namespace) -> int:
     import time
 
-    from mosiv_ros.graph import Graph, NodeSpec
+    from mosiv_ros.graph import Graph, graph_nodes
     from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
     from mosiv_ros.io.bag import list_topics
     from mosiv_ros.io.files import OutputDir
-    from mosiv_ros.pipeline import evaluate, fit_window, prepare
+    from mosiv_ros.pipeline import evaluate, fit_window
+    from mosiv_ros.prepare import prepare
 
     domain, line = graph_domain(args.domain_id, dict(os.environ))
     print(f"mosiv graph: {line}", flush=True)  # first: where to look (rviz, ros2 topic) and why
@@ -291,11 +292,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
                  if topic.endswith("/color/image_raw"))
     window = fit_window(images, args.holdout)
     overrides = {"identify_node": {"output_yaml": str(estimates_file), "window": window}}
-    specs = [NodeSpec(name, {**({"scene": bag} if "scene" in _params(name) else {}),
-                             **overrides.get(name, {})}) for name in PIPELINE_NODES]
-    specs.append(NodeSpec("bag_replay_node", {"bag": bag, "rate": float(args.rate),
-                                              "wait_for_subscribers": 1}))
-    with Graph(specs, params_file=args.params_file, env=domain) as graph:
+    with Graph(graph_nodes(bag, float(args.rate), bag, overrides), params_file=args.params_file, env=domain) as graph:
         try:  # a node that fails on the way, or says so, ends the wait at once: which and how
             graph.wait_for_line("identify_node", "identification done",
                                 args.timeout - (time.perf_counter() - start),
@@ -327,10 +324,6 @@ def _print_summary(result) -> None:
     for part in ("observed", "future"):
         if part in metrics and "cd" in metrics[part]:
             print(f"{part} frames: CD {metrics[part]['cd'] * 1e3:.2f} mm")
-
-
-def _params(node: str) -> set[str]:
-    return {name for name, _, _ in describe(STAGE_CONFIGS[node])}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -214,8 +214,10 @@ STAGE_CONFIGS: dict[str, type] = {
 }
 """Every node of the package (its executable's name) and its parameters: setup.py installs these."""
 
-PIPELINE_NODES: tuple[str, ...] = tuple(node for node in STAGE_CONFIGS if node != "bag_replay_node")
-"""The stage nodes in pipeline order: every node but the replay that feeds them."""
+REPLAY_NODE = "bag_replay_node"
+"""The node that replays a recording into the pipeline."""
+PIPELINE_NODES: tuple[str, ...] = tuple(node for node in STAGE_CONFIGS if node != REPLAY_NODE)
+"""The stage nodes in pipeline order (each before the one it feeds): every node but the replay."""
 
 
 def describe(config_type: type) -> list[tuple[str, Any, str]]:

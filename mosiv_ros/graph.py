@@ -1,10 +1,12 @@
-"""Start the node processes of a mosiv_ros graph with their parameters and stop them cleanly.
+"""The mosiv_ros node graph: what it is (``graph_nodes``), and a runner that starts it.
 
-``launch/mosiv.launch.py`` does this on a ROS 2 install; ``launch`` is not installable from
-PyPI, so the command line and the tests use this small runner instead, with the same
-executables (found through the ament index, as ``ros2 run`` finds them) and the same parameter
-file (``config/mosiv.yaml``). Each process's output is streamed line by line, prefixed with its
-name, and kept for inspection.
+``graph_nodes`` is the one description of the graph: its nodes in start order with the
+parameters each gets on top of the params file. ``launch/mosiv.launch.py`` builds its launch
+description from it on a ROS 2 install; ``launch`` is not installable from PyPI, so the command
+line (``mosiv graph``) and the tests start the same nodes with this small runner (``Graph``),
+with the same executables (found through the ament index, as ``ros2 run`` finds them) and the
+same parameter file (``config/mosiv.yaml``). Each process's output is streamed line by line,
+prefixed with its name, and kept for inspection.
 
 This module starts processes; it never imports rclpy.
 """
@@ -26,6 +28,8 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+
+from mosiv_ros.config import PIPELINE_NODES, REPLAY_NODE
 
 PACKAGE = "mosiv_ros"
 LOG = logging.getLogger(__name__)
@@ -133,6 +137,20 @@ class NodeSpec:
 
     executable: str
     parameters: dict[str, Any] = field(default_factory=dict)
+
+
+def graph_nodes(bag: Any, rate: Any, scene: Any,
+                overrides: dict[str, dict[str, Any]] | None = None) -> list[NodeSpec]:
+    """The mosiv graph in start order: the pipeline nodes with ``scene``, then the replay of ``bag``.
+
+    The replay waits until every image topic has a subscriber and replays at ``rate``;
+    ``overrides`` adds parameters by pipeline node. The values may be of any kind a caller passes on:
+    the launch file gives its launch arguments (substitutions).
+    """
+    overrides = overrides or {}
+    specs = [NodeSpec(name, {"scene": scene, **overrides.get(name, {})}) for name in PIPELINE_NODES]
+    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1}))
+    return specs
 
 
 def print_line(line: str) -> None:

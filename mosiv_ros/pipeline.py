@@ -17,41 +17,22 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from mosiv_ros.config import HOLDOUT, IdentifyConfig, LiftingConfig, PredictionConfig, ReconstructionConfig
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.identify.run import identify_objects, phase_progress
-from mosiv_ros.io.bag import read_recording
-from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.files import OutputDir
-from mosiv_ros.io.recording import Recording
-from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.prepare import Prepared, RunConfig, prepare
 from mosiv_ros.progress import Progress
-from mosiv_ros.recon.reconstruct import ObservedFrame, iter_reconstruct
 from mosiv_ros.report import write_report
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.synth.ground_truth import ground_truth_if_any
 
 _LOG = logging.getLogger(__name__)
-
-
-@dataclass
-class RunConfig:
-    """Every stage's settings (the node parameters) plus the held-out part of the recording."""
-
-    reconstruction: ReconstructionConfig = field(default_factory=ReconstructionConfig)
-    lifting: LiftingConfig = field(default_factory=LiftingConfig)
-    identify: IdentifyConfig = field(default_factory=IdentifyConfig)
-    prediction: PredictionConfig = field(default_factory=PredictionConfig)
-    holdout: float = HOLDOUT
-    """Fraction of the recording's frames kept out of the fit, to score predictions on."""
-    render: bool = True
-    """Score 2D metrics (IoU, PSNR, SSIM) by re-rendering the twin."""
 
 
 @dataclass
@@ -61,49 +42,9 @@ class RunResult:
     out: Path
 
 
-@dataclass
-class Prepared:
-    """Stages 1-2 of a recording.
-
-    The recording, its observed frames from the lifted one on, the lifted particles, and the
-    time they took.
-    """
-
-    bag: Path
-    recording: Recording
-    frames: list[ObservedFrame]
-    lifted: LiftedParticles
-    timing: dict[str, float]
-
-
 def fit_window(frames: int, holdout: float) -> int:
     """How many of a recording's ``frames`` are fitted when the last ``holdout`` are held out (>= 2)."""
     return max(2, int(round(frames * (1 - holdout))))
-
-
-def prepare(bag: str | Path, config: RunConfig,
-            progress: Progress | None = None) -> Prepared:
-    """Reconstruct every frame set and lift the first complete one."""
-    timing: dict[str, float] = {}
-    tick = time.perf_counter()
-    recording = read_recording(bag)
-    frames = []
-    n_sets = min(len(c.frames) for c in recording.cameras.values())
-    _LOG.info("stage 1, reconstruction: %d frame sets", n_sets)
-    for frame in iter_reconstruct(recording, config.reconstruction, recording.scene):
-        frames.append(frame)
-        if progress:
-            progress("reconstruct", len(frames), n_sets, "frame")
-    timing["reconstruct_s"] = time.perf_counter() - tick
-    if len(frames) < 3:
-        raise BagError(bag, None, f"only {len(frames)} frame sets: need at least 3 to fit and test")
-    _LOG.info("stage 2, lifting")
-    tick = time.perf_counter()
-    lifted = lift_first_complete(frames, config.lifting, recording.scene)
-    timing["lift_s"] = time.perf_counter() - tick
-    _LOG.info("lifted: %s", lifted.summary())
-    frames = [f for f in frames if f.stamp_ns >= lifted.stamp_ns]
-    return Prepared(Path(bag), recording, frames, lifted, timing)
 
 
 def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,

@@ -19,30 +19,15 @@ import numpy as np
 
 from mosiv_ros.config import HOLDOUT
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE
-from mosiv_ros.io.files import OutputDir
+from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
-
-
-def jsonable(value):
-    """``value`` with numpy types made plain and non-finite floats made None (JSON null)."""
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 def write_report(out: OutputDir, report: dict, prediction: Prediction, frames: Sequence[ObservedFrame],
                  fitted: int) -> list[Path]:
     """Write report.json, report.md and the plots (each whole: ``io.files``); return their paths."""
-    paths = [out.write_text("report.json", json.dumps(jsonable(report), indent=1))]
+    paths = [out.write_text("report.json", json.dumps(plain(report, null_nonfinite=True), indent=1))]
     plots = _plots(out, report, prediction, frames, fitted)
     paths.append(out.write_text("report.md", _markdown(report, [p.name for p in plots])))
     return paths + plots

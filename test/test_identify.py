@@ -352,7 +352,8 @@ def test_boundary_offset_gradient_matches_finite_differences():
     # Two balls colliding head-on: ball a's boundary layer (soft volumes, M-PhyGs) carries a
     # large share of its mass, so its offset sets the momentum exchange. dL/d(offset) from the
     # simulator's volume gradients against a central difference of the fit's own loss.
-    from mosiv_ros.identify.fit import OFFSET, Boundary
+    from mosiv_ros.identify.fit import Boundary
+    from mosiv_ros.simulation import OFFSET
 
     dx = 0.02
     a, b = sphere((0.2, 0.2, 0.2), 0.05, dx / 2), sphere((0.32, 0.2, 0.2), 0.05, dx / 2)

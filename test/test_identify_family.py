@@ -26,7 +26,8 @@ from mosiv_ros.identify.run import identify_objects, problem_options
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.lifting.lift import UNKNOWN_MATERIAL, LiftedParticles
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig
-from mosiv_ros.pipeline import RunConfig, prepare, run
+from mosiv_ros.pipeline import run
+from mosiv_ros.prepare import RunConfig, prepare
 
 HEAP = {
     "name": "heap", "duration": 0.6,

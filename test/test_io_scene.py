@@ -7,6 +7,7 @@ import pickle
 import pytest
 
 from mosiv_ros.cli import main
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.errors import MAX_SHOWN_CHARS, BagError, SceneError
 from mosiv_ros.io.scene import (
     FAMILIES,
@@ -17,7 +18,6 @@ from mosiv_ros.io.scene import (
     DeclaredGround,
     Scene,
     SceneObject,
-    load_scene,
     parse_scene,
     scene_to_yaml,
 )

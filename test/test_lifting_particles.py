@@ -175,8 +175,9 @@ def test_particle_cloud_round_trips_through_pointcloud2():
     cloud = lifted.to_cloud()
     msg = pointcloud_to_msg(rosbags_types(), cloud.xyz, cloud.object_id, cloud.stamp_ns, "world", cloud.fields)
     assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", "volume", "material", "sdf",
-                                            "lattice_volume", "segment"]
-    back = LiftedParticles.from_cloud(pointcloud_from_msg(msg), lifted.beta, lifted.eps)
+                                            "lattice_volume", "segment", "boundary_beta", "boundary_eps"]
+    back = LiftedParticles.from_cloud(pointcloud_from_msg(msg))
+    assert (back.beta, back.eps) == (lifted.beta, lifted.eps)
     assert back.segment.dtype == np.uint16 and back.material.dtype == np.uint8
     np.testing.assert_array_equal(back.object_id, lifted.object_id)
     families = np.where(back.object_id == 1, FAMILIES.index("elastic"), FAMILIES.index("sand"))
@@ -191,7 +192,7 @@ def test_an_empty_particle_cloud_is_refused_saying_so():
     empty = PointCloud(cloud.xyz[:0], cloud.object_id[:0], {k: v[:0] for k, v in cloud.fields.items()},
                        stamp_ns=7)
     with pytest.raises(ValueError, match="particle cloud of stamp 7 ns is empty: no particle to simulate"):
-        LiftedParticles.from_cloud(empty, 5e3, 1e-4)
+        LiftedParticles.from_cloud(empty)
 
 
 def test_an_undeclared_object_is_lifted_with_unknown_material_and_a_warning():

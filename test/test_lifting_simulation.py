@@ -8,11 +8,11 @@ from mosiv_ros.config import LiftingConfig
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene, SceneObject
 from mosiv_ros.lifting import lift
-from mosiv_ros.lifting.simulation import to_sim_particles
 from mosiv_ros.recon import VOXEL_FIELD
 from mosiv_ros.sim import Ground, ObjectModel, SimConfig, Simulator, domain_around
 from mosiv_ros.sim.materials import FAMILY_CODES
 from mosiv_ros.sim.sampling import box
+from mosiv_ros.simulation import to_sim_particles
 
 SPACING = 0.01
 

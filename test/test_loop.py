@@ -25,7 +25,7 @@ from mosiv_ros.config import IdentifyConfig, LiftingConfig
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig
 from mosiv_ros.loop.observations import Reobserver
-from mosiv_ros.pipeline import RunConfig, prepare
+from mosiv_ros.prepare import RunConfig, prepare
 
 THROW = {
     "name": "throw", "duration": 0.3,

@@ -17,7 +17,7 @@ from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.nodes.common import STREAM_QOS
 from mosiv_ros.nodes.outputs import statuses_of
-from mosiv_ros.pipeline import RunConfig, prepare
+from mosiv_ros.prepare import RunConfig, prepare
 
 
 @pytest.fixture(scope="module")

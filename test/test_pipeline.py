@@ -25,8 +25,9 @@ from mosiv_ros.io.bag import read_recording
 from mosiv_ros.io.files import MANIFEST, OutputDir
 from mosiv_ros.io.messages import pointcloud_from_msg, stamp_to_ns
 from mosiv_ros.nodes.outputs import statuses_of
-from mosiv_ros.pipeline import RunConfig, evaluate, prepare
+from mosiv_ros.pipeline import evaluate
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.prepare import RunConfig, prepare
 from mosiv_ros.report import _markdown
 
 

@@ -25,9 +25,9 @@ from mosiv_ros.identify.estimates import WARN, Estimates, ObjectEstimate
 from mosiv_ros.io.errors import MAX_SHOWN_CHARS
 from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types, stamp_to_ns
 from mosiv_ros.nodes.common import lifted_from_msg
-from mosiv_ros.pipeline import RunConfig, prepare
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.predict.twin import Twin
+from mosiv_ros.prepare import RunConfig, prepare
 
 
 def _estimates(stamp_ns: int) -> Estimates:

@@ -1,4 +1,5 @@
-"""reconstruction_node and lifting_node as real processes give the clouds of the in-process core."""
+"""reconstruction_node and lifting_node as real processes give the clouds of the in-process core,
+and what lifting_node publishes is what its consumers read."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ from test_nodes_process import Listener
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.io.bag import read_recording, write_recording
-from mosiv_ros.io.messages import pointcloud_from_msg
-from mosiv_ros.lifting import lift_first_complete
+from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
+from mosiv_ros.lifting import lift, lift_first_complete
+from mosiv_ros.nodes.common import STREAM_QOS, lifted_from_msg
 from mosiv_ros.recon import reconstruct_recording
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
@@ -94,3 +96,27 @@ def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stop
         assert set(np.unique(got.object_id).tolist()) == {1, 2, 3}
         np.testing.assert_array_equal(got.xyz, want.xyz)
 
+
+
+@pytest.mark.slow
+def test_lifting_nodes_boundary_settings_reach_identify_node(listener):
+    """A boundary_beta and boundary_eps other than the defaults travel on /mosiv/particles."""
+    recording = sphere_recording(touching_pair(), n_frames=1, n_cameras=3, width=96, height=72)
+    cloud = reconstruct_recording(recording, ReconstructionConfig(**RECON))[0].to_cloud()
+    lifting = {**LIFT, "boundary_beta": 800.0, "boundary_eps": 0.01, "consensus_frames": 0}
+    observed = listener.node.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
+    listener.subscribe(PointCloud2, "/mosiv/particles", LATCHED)
+    # identify_node gets the particles and a single frame: it waits for more and never fits
+    stages = [NodeSpec("lifting_node", lifting),
+              NodeSpec("identify_node", {"device": "cpu", "window": 10, "output_yaml": ""})]
+    with Graph(stages, sink=None) as graph:
+        assert listener.wait_for(lambda: observed.get_subscription_count() >= 2, 20)
+        observed.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id, cloud.stamp_ns,
+                                           "world", cloud.fields))
+        line = graph.nodes["identify_node"].wait_for_line("/mosiv/particles:", 60)
+        assert listener.wait_for(lambda: listener.received["/mosiv/particles"], 10)
+    want = lift(cloud, LiftingConfig(**lifting))
+    # the particles' volumes as identify_node reads them: those lifting_node lifted
+    assert line.split("/mosiv/particles: ")[1].rsplit(" in ", 1)[0] == want.summary().rsplit(" in ", 1)[0]
+    seen = lifted_from_msg(listener.received["/mosiv/particles"][-1])
+    assert (seen.beta, seen.eps) == (800.0, 0.01)

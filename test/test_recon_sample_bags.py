@@ -17,8 +17,9 @@ from scipy.spatial import cKDTree
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
+from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon import Reconstructor, reconstruct_recording
-from mosiv_ros.recon.evaluation import chamfer, union_of_balls_volume
+from mosiv_ros.recon.evaluation import union_of_balls_volume
 from mosiv_ros.synth.ground_truth import read_ground_truth, read_ground_truth_particles
 
 BAG = Path(__file__).resolve().parents[1] / "bags" / "elastic_on_plastic"
@@ -45,7 +46,7 @@ def test_every_object_of_every_frame_is_within_the_chamfer_limit_and_apart(sampl
         trees = {i: cKDTree(truth.of_object(i)[k]) for i in (1, 2)}
         for object_id, other in ((1, 2), (2, 1)):
             voxels = frame.objects[object_id].occupancy
-            cd = chamfer(voxels, truth.of_object(object_id)[k])[0]
+            cd = chamfer_distance(voxels, truth.of_object(object_id)[k])
             assert cd < limit_mm * 1e-3, (k, object_id, cd)
             # Apart: voxels nearer the other object's particles than their own are rare.
             nearer = trees[other].query(voxels)[0] < trees[object_id].query(voxels)[0]
@@ -91,7 +92,7 @@ def test_a_camera_missing_from_the_whole_recording_is_reported_and_still_gives_e
     frames = reconstruct_recording(two, ReconstructionConfig(use_depth=False))
     for k, frame in enumerate(frames):
         for object_id in (1, 2):  # degraded (a loose two-view hull), still valid
-            assert chamfer(frame.objects[object_id].occupancy, truth.of_object(object_id)[k])[0] < 0.025
+            assert chamfer_distance(frame.objects[object_id].occupancy, truth.of_object(object_id)[k]) < 0.025
     notes = Reconstructor(two.cameras, ReconstructionConfig(), two.scene).notes
     assert any("only 2 camera(s) (cam0, cam1)" in note for note in notes)
 

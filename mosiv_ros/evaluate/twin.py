@@ -28,9 +28,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mosiv_ros.evaluate.metrics import chamfer_distance, emd, iou, psnr, ssim
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.io.recording import Recording, match_frames
+from mosiv_ros.metrics import chamfer_distance, emd, iou, psnr, ssim
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals

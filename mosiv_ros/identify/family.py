@@ -12,7 +12,7 @@ predicts frames it was not fitted on:
    ``families`` that use every parameter its declaration gives), the problem is fitted on the
    fitted frames (``identify.fit``, with the settings of the final fit), the fitted simulation
    is rolled over the whole window, and its score is the held-out error: the mean Chamfer
-   distance (``evaluate.metrics``) between each object's particles and its observed occupancy
+   distance (``mosiv_ros.metrics``) between each object's particles and its observed occupancy
    over the held-out frames. The lowest score wins;
 3. a candidate whose fit or rollout fails (a diverging simulation, a parameter out of range)
    scores infinity, with the reason; the selection goes on.
@@ -41,17 +41,18 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.config import HOLDOUT, IdentifyConfig
-from mosiv_ros.evaluate.metrics import chamfer_distance
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.fit import FitSettings, Identifier
 from mosiv_ros.identify.observations import Observations, View
-from mosiv_ros.identify.problem import ProblemOptions, build_problem, declared_params, object_name
+from mosiv_ros.identify.problem import ProblemOptions, build_problem, object_name
 from mosiv_ros.io.files import write_text
 from mosiv_ros.io.scene import Scene, scene_to_yaml
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS
+from mosiv_ros.simulation import declared_params
 
 _LOG = logging.getLogger(__name__)
 

@@ -77,6 +77,7 @@ from mosiv_ros.lifting.lift import boundary_volume
 from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
+from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
 
@@ -171,10 +172,6 @@ class Boundary:
 
     def inside(self, offsets_per_particle: np.ndarray) -> np.ndarray:
         return self.sdf + offsets_per_particle <= 0.0
-
-
-OFFSET = "boundary_offset"
-"""The entry name of a boundary offset (not a simulator parameter)."""
 
 
 @dataclass
@@ -289,6 +286,16 @@ class Identifier:
         if not entries:
             raise ValueError(f"nothing to fit: none of {free} applies to these objects")
         return entries
+
+    def start_from(self, offsets: np.ndarray, velocity: np.ndarray) -> None:
+        """Set ``sim`` up to roll out, unfitted, from the parameters it holds.
+
+        With these boundary offsets (K,) and initial velocities (K, 6: linear m/s, angular rad/s
+        about each centroid); for a caller that rolls ``sim`` out without fitting (the loop
+        closure's probes).
+        """
+        self.offsets[:] = offsets
+        self._apply(self._pack(), velocity)
 
     def _pack(self) -> np.ndarray:
         u = [e.coordinate.to_u(self.offsets[e.index[1]] if e.name == OFFSET

@@ -34,7 +34,7 @@ What it is for: the glue between stages. What it is not for: fitting (``identify
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -43,26 +43,15 @@ from scipy.spatial.transform import Rotation
 from mosiv_ros.identify.fit import Boundary, FitProblem
 from mosiv_ros.identify.observations import Observations, View
 from mosiv_ros.io.recording import Recording
-from mosiv_ros.io.scene import Scene, SceneObject
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.lifting.simulation import to_sim_particles
 from mosiv_ros.recon.reconstruct import ObservedFrame
-from mosiv_ros.sim import (
-    BUILTIN_EFFECTS,
-    Collider,
-    Gravity,
-    Ground,
-    ObjectModel,
-    SimConfig,
-    domain_around,
-)
-from mosiv_ros.sim.materials import FAMILY_PARAMS, in_sim_units
+from mosiv_ros.sim import Collider, ObjectModel, SimConfig, domain_around
+from mosiv_ros.sim.materials import FAMILY_PARAMS
+from mosiv_ros.simulation import declared_params, effects_of, ground_of, to_sim_particles
 
 _LOG = logging.getLogger(__name__)
 
-DEFAULT_GRAVITY = (0.0, 0.0, -9.81)
-SENSOR_EFFECTS = ("camera_time_offset", "mask_noise")
-"""Declared effects that act on the observations, not on the simulated motion."""
 FRAME_SPACING_TOLERANCE = 0.1
 """Largest deviation of a frame spacing from a whole number of frame times, as a fraction of one."""
 MIN_OBSERVED_FRACTION = 0.5
@@ -92,11 +81,6 @@ def object_name(scene: Scene, object_id: int) -> str:
     """The declared name of an object, or ``object_<id>`` for an undeclared one."""
     item = next((o for o in scene.objects if o.id == object_id), None)
     return item.name if item is not None else f"object_{object_id}"
-
-
-def declared_params(item: SceneObject | None) -> dict[str, float]:
-    """An object's declared parameters in the simulator's names and units (friction angle in rad)."""
-    return in_sim_units(item.params if item is not None else {})
 
 
 def views_of(recording: Recording) -> list[View]:
@@ -211,43 +195,6 @@ def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:
     if geometry is None:
         return np.zeros((0, 3))
     return np.asarray(geometry.occupancy, dtype=np.float64)
-
-
-def ground_of(scene: Scene) -> Ground | None:
-    """The declared ground plane (the simulator's default friction unless declared), or None."""
-    if scene.ground is None:
-        return None
-    height, normal = scene.ground.plane()
-    friction = scene.ground.friction
-    return Ground(height=height, normal=normal, friction=Ground.friction if friction is None else friction)
-
-
-def effects_of(scene: Scene, objects: Sequence[ObjectModel]) -> list:
-    """Gravity (declared or DEFAULT_GRAVITY) and the declared simulator effects, as declared."""
-    names = [o.name for o in objects]
-    effects = []
-    declared = {e.name: e for e in scene.effects}
-    gravity = declared.pop("gravity", None)
-    effects.append(Gravity(g=tuple(gravity.params.get("g", DEFAULT_GRAVITY)) if gravity
-                           else DEFAULT_GRAVITY))
-    for name, effect in declared.items():
-        if name in SENSOR_EFFECTS:
-            continue
-        if name not in BUILTIN_EFFECTS:
-            raise ProblemError(f"declared effect {name!r} is not a simulator effect "
-                               f"(known: {', '.join(sorted(BUILTIN_EFFECTS))})")
-        values = {key: _per_object(value, names) for key, value in effect.params.items()}
-        effects.append(BUILTIN_EFFECTS[name](**values))
-    return effects
-
-
-def _per_object(value, names: Sequence[str]):
-    if isinstance(value, Mapping):
-        unknown = sorted(set(value) - set(names))
-        if unknown:
-            raise ProblemError(f"effect parameter for unknown object(s) {unknown}")
-        return [[float(value.get(n, 0.0)) for n in names]]
-    return value
 
 
 def _colliders(scene: Scene, poses: Sequence[tuple[int, np.ndarray]], start_ns: int) -> list[Collider]:

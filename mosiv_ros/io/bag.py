@@ -2,7 +2,9 @@
 
 What it is for: ``read_recording`` / ``write_recording`` between a bag directory (MCAP or sqlite3)
 and an in-memory ``Recording``; ``iter_raw_messages`` / ``list_topics`` for replaying a bag's
-serialized CDR messages unchanged; ``read_custom_data`` for its metadata. Every problem with a bag
+serialized CDR messages unchanged; ``read_custom_data`` for its metadata; ``load_scene`` for a
+scene declaration from a bag, a file or inline text (the nodes' ``scene`` parameter; here, above
+``io.scene``, because a bag's declaration is read from its metadata). Every problem with a bag
 is raised as ``BagError`` naming the bag, the topic and the problem; errors of the storage
 libraries are wrapped here, at the boundary.
 What it is not for: live topics, message conversion (``mosiv_ros.io.messages``), scene schema
@@ -76,7 +78,7 @@ from mosiv_ros.io.messages import (
     transform_to_msg,
 )
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
-from mosiv_ros.io.scene import SCENE_KEY, Scene, load_yaml, parse_scene, scene_to_yaml
+from mosiv_ros.io.scene import SCENE_KEY, Scene, load_yaml, parse_scene, read_scene_text, scene_to_yaml
 from mosiv_ros.io.streams import CameraFrameAssembler
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 
@@ -402,6 +404,26 @@ def read_recording(path: str | Path, *, check_ids: bool = True) -> Recording:
         sum(len(c.frames) for c in recording.cameras.values()),
     )
     return recording
+
+
+def load_scene(source: str | Path) -> Scene:
+    """Load a scene from a YAML file, a rosbag2 directory (its custom_data) or inline YAML text.
+
+    A ``str`` naming an existing path is read as that path; any other ``str`` containing a newline,
+    ``:`` or ``{`` (or blank) is YAML text; what remains is taken as a missing file (SceneError).
+    A bag without a ``mosiv.scene`` entry gives an empty Scene (nothing declared).
+    """
+    if isinstance(source, str) and not Path(source).exists():
+        if not source.strip() or any(mark in source for mark in "\n:{"):
+            return parse_scene(source)
+    path = Path(source)
+    if path.is_dir():
+        text = read_custom_data(path).get(SCENE_KEY)
+        if text is None:
+            _LOG.info("%s declares no scene (no custom_data %r)", path, SCENE_KEY)
+            return Scene()
+        return parse_scene(text, source=f"{path} custom_data[{SCENE_KEY}]")
+    return parse_scene(read_scene_text(path), source=str(path))
 
 
 def _read_scene(path: Path) -> Scene:

@@ -13,7 +13,8 @@ What it is for:
   set or the newer run's, never a mix. Files the pipeline did not write are left alone;
 - ``check_new_path(path)``: the same check for an output that must not exist yet (a bag, a
   suite), made before minutes of simulation rather than after; ``check_output_file(path)`` for
-  one file (identify_node's ``output_yaml``, checked when the node starts).
+  one file (identify_node's ``output_yaml``, checked when the node starts);
+- ``plain(value)``: a report's or a sidecar's dictionary with numpy values made plain Python.
 
 What it is not for: writing bags (``io.bag``, with rosbags).
 """
@@ -21,6 +22,7 @@ What it is not for: writing bags (``io.bag``, with rosbags).
 from __future__ import annotations
 
 import datetime
+import math
 import os
 import uuid
 from collections.abc import Iterator
@@ -28,6 +30,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from mosiv_ros.io.errors import OutputError
@@ -159,3 +162,24 @@ class OutputDir:
             return []
         return [name for name in files if isinstance(name, str) and name == Path(name).name
                 and name not in (MANIFEST, "", ".", "..")]
+
+
+def plain(value: Any, null_nonfinite: bool = False) -> Any:
+    """``value`` with numpy arrays, numpy scalars and paths made plain Python, for YAML or JSON.
+
+    Nested in dicts, lists and tuples too. With ``null_nonfinite`` (JSON has no inf or NaN),
+    non-finite floats become None (null).
+    """
+    if isinstance(value, dict):
+        return {str(k): plain(v, null_nonfinite) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v, null_nonfinite) for v in value]
+    if isinstance(value, np.ndarray):
+        return plain(value.tolist(), null_nonfinite)
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, Path):
+        return str(value)
+    if null_nonfinite and isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value

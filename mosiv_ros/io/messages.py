@@ -54,7 +54,10 @@ INTEGER_CLOUD_FIELDS: dict[str, np.dtype] = {
     "material": np.dtype(np.uint8),
     "segment": np.dtype(np.uint16),
 }
-"""PointCloud2 fields written as unsigned integers (every other extra field is float32)."""
+"""PointCloud2 fields written as unsigned integers."""
+FLOAT64_CLOUD_FIELDS = ("boundary_beta", "boundary_eps")
+"""PointCloud2 fields written as float64: settings a consumer must read back exactly (every other
+extra field is float32)."""
 _CLOUD_REQUIRED = ("x", "y", "z", "object_id")
 _PADDING_FIELDS = ("", "_")  # unnamed padding, as some point-cloud tools write it
 
@@ -309,8 +312,8 @@ def pointcloud_to_msg(
     """sensor_msgs/PointCloud2 (height 1, little-endian) of N points.
 
     Fields: x, y, z float32; object_id uint16; then each entry of ``fields`` as float32, except
-    the integer fields of ``INTEGER_CLOUD_FIELDS`` (``material`` uint8, ``segment`` uint16), in
-    the given order, each aligned to its size.
+    the integer fields of ``INTEGER_CLOUD_FIELDS`` (``material`` uint8, ``segment`` uint16) and
+    the float64 ones of ``FLOAT64_CLOUD_FIELDS``, in the given order, each aligned to its size.
     """
     xyz = np.asarray(xyz)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -337,7 +340,8 @@ def pointcloud_to_msg(
                 (name, dtype, _as_integers(values, dtype, f"PointCloud2 field {name!r}"))
             )
         else:
-            columns.append((name, np.dtype(np.float32), values))
+            dtype = np.dtype(np.float64 if name in FLOAT64_CLOUD_FIELDS else np.float32)
+            columns.append((name, dtype, values))
 
     offsets, offset = [], 0
     for _, dtype, _ in columns:

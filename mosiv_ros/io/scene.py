@@ -45,7 +45,6 @@ files read theirs (``io.fields``; ``DeclaredGripper.read`` reads both), with the
 
 from __future__ import annotations
 
-import logging
 import math
 import re
 from dataclasses import dataclass, field
@@ -56,8 +55,6 @@ import yaml
 
 from mosiv_ros.io.errors import SceneError, not_utf8, shown
 from mosiv_ros.io.fields import Fields, check_number, check_vector, is_number
-
-_LOG = logging.getLogger(__name__)
 
 SCENE_KEY = "mosiv.scene"
 SCHEMA_VERSION = 1
@@ -459,29 +456,6 @@ def scene_to_yaml(scene: Scene) -> str:
         ]
     document.update(scene.extra)
     return yaml.safe_dump(document, sort_keys=False)
-
-
-def load_scene(source: str | Path) -> Scene:
-    """Load a scene from a YAML file, a rosbag2 directory (its custom_data) or inline YAML text.
-
-    A ``str`` naming an existing path is read as that path; any other ``str`` containing a newline,
-    ``:`` or ``{`` (or blank) is YAML text; what remains is taken as a missing file (SceneError).
-    A bag without a ``mosiv.scene`` entry gives an empty Scene (nothing declared).
-    """
-    if isinstance(source, str) and not Path(source).exists():
-        if not source.strip() or any(mark in source for mark in "\n:{"):
-            return parse_scene(source)
-    path = Path(source)
-    if path.is_dir():
-        # Imported here: bag.py builds on this module, this one only borrows its metadata reader.
-        from mosiv_ros.io.bag import read_custom_data
-
-        text = read_custom_data(path).get(SCENE_KEY)
-        if text is None:
-            _LOG.info("%s declares no scene (no custom_data %r)", path, SCENE_KEY)
-            return Scene()
-        return parse_scene(text, source=f"{path} custom_data[{SCENE_KEY}]")
-    return parse_scene(read_scene_text(path), source=str(path))
 
 
 def read_scene_text(path: Path) -> str:

@@ -2,7 +2,8 @@
 
 ``lift`` / ``lift_first_complete`` (``lift``) give ``LiftedParticles``: non-overlapping per-object
 particles with signed distances, M-PhyGs boundary volumes, object ids, segments and material
-families; ``density`` holds the grid steps; ``simulation.to_sim_particles`` feeds the simulator.
+families; ``density`` holds the grid steps. ``mosiv_ros.simulation`` gives the particles to the
+simulator.
 """
 
 from mosiv_ros.lifting.lift import (

@@ -113,7 +113,11 @@ class LiftedParticles:
         return f"{len(self.x)} particles, {'; '.join(parts) or 'no object'} in {self.seconds * 1e3:.0f} ms"
 
     def to_cloud(self) -> PointCloud:
-        """The ``/mosiv/particles`` cloud: fields volume, material, sdf, lattice_volume, segment."""
+        """The ``/mosiv/particles`` cloud (DESIGN.md).
+
+        Fields volume, material, sdf, segment, and lattice_volume, boundary_beta, boundary_eps
+        (one value each, repeated on every point).
+        """
         n = len(self.x)
         return PointCloud(self.x, self.object_id, {
             "volume": self.volumes().astype(np.float32),
@@ -121,25 +125,38 @@ class LiftedParticles:
             "sdf": self.sdf.astype(np.float32),
             "lattice_volume": np.full(n, self.lattice_volume, np.float32),
             "segment": self.segment,
+            "boundary_beta": np.full(n, self.beta),
+            "boundary_eps": np.full(n, self.eps),
         }, stamp_ns=self.stamp_ns)
 
     @classmethod
-    def from_cloud(cls, cloud: PointCloud, beta: float, eps: float) -> LiftedParticles:
-        """Read a ``/mosiv/particles`` cloud back (beta, eps: the settings it was lifted with).
+    def from_cloud(cls, cloud: PointCloud) -> LiftedParticles:
+        """Read a ``/mosiv/particles`` cloud back, with the boundary settings it was lifted with.
 
-        ValueError if it lacks a field or has no particle (nothing to simulate).
+        ValueError if it lacks a field, has no particle (nothing to simulate) or several values of
+        a one-value field.
         """
-        missing = [n for n in ("material", "sdf", "lattice_volume", "segment") if n not in cloud.fields]
+        missing = [n for n in ("material", "sdf", "segment", *_ONE_VALUE_FIELDS) if n not in cloud.fields]
         if missing:
             raise ValueError(f"particle cloud lacks field(s) {missing}")
         if not len(cloud.xyz):
             raise ValueError(f"particle cloud of stamp {cloud.stamp_ns} ns is empty: no particle to simulate")
-        lattice = np.unique(cloud.fields["lattice_volume"])
-        if len(lattice) > 1:
-            raise ValueError(f"particle cloud has several lattice volumes {lattice.tolist()}")
+        lattice_volume, beta, eps = (_one_value(cloud, name) for name in _ONE_VALUE_FIELDS)
         return cls(cloud.xyz.astype(np.float64), cloud.object_id, cloud.fields["segment"].astype(np.uint16),
                    cloud.fields["material"].astype(np.uint8), cloud.fields["sdf"].astype(np.float64),
-                   float(lattice[0]), beta, eps, cloud.stamp_ns)
+                   lattice_volume, beta, eps, cloud.stamp_ns)
+
+
+_ONE_VALUE_FIELDS = ("lattice_volume", "boundary_beta", "boundary_eps")
+"""Fields of a particle cloud that hold one value for the whole cloud, on every point."""
+
+
+def _one_value(cloud: PointCloud, name: str) -> float:
+    """The value of a one-value field of a particle cloud; ValueError if it has several."""
+    values = np.unique(cloud.fields[name])
+    if len(values) > 1:
+        raise ValueError(f"particle cloud has several values of {name}: {values.tolist()}")
+    return float(values[0])
 
 
 def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,

@@ -83,7 +83,7 @@ from scipy.stats import chi2
 from mosiv_ros.config import HOLDOUT, IdentifyConfig
 from mosiv_ros.identify.estimates import Estimates
 from mosiv_ros.identify.family import FamilyChoice, select_families, with_family_scores
-from mosiv_ros.identify.fit import OFFSET, FitProblem, FitSettings, Identifier
+from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.observations import View
 from mosiv_ros.identify.problem import build_problem
 from mosiv_ros.identify.run import (
@@ -111,6 +111,7 @@ from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
+from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
 
@@ -381,9 +382,7 @@ class LoopClosure:
         problem = self.problem(scene, [], ctx, model.observations)
         _start_at(problem, model.estimates)
         identifier = Identifier(problem, FitSettings.of(self.identify))
-        fitted = model.identification.identifier
-        identifier.offsets[:] = fitted.offsets
-        identifier._apply(identifier._pack(), model.identification.result.velocity)
+        identifier.start_from(model.identification.identifier.offsets, model.identification.result.velocity)
         return self.rollout(identifier, model.observations)
 
     def analyse(self, prediction: Prediction, observations: Observations) -> ResidualAnalysis:

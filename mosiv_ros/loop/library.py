@@ -5,8 +5,8 @@ A ``Candidate`` is one effect the loop can add to a scene's model. It declares
 - ``knobs(ctx)``: the parameters it adds (``Knob``: a label, the value the current model has,
   the step by which the signature is measured, the range);
 - ``declare(scene, values, ctx)``: the scene declaration with the effect at those values. The
-  simulator builds its effects and floor from the declaration (``identify.problem``,
-  ``predict.twin``), so a candidate is only ever a change of declaration;
+  simulator builds its effects and floor from the declaration (``mosiv_ros.simulation``, for
+  the fit and the twin alike), so a candidate is only ever a change of declaration;
 - ``free(ctx)``: the simulator parameters a refit fits (and, per object, those it keeps fixed);
 - ``read(estimates, prediction, ctx)``: the fitted knob values from a refit's estimates (and,
   for an effect fitted on the observation side, from its rolled-out twin);
@@ -23,7 +23,7 @@ paths, shape) per unit of the knob. The effect explains the
 residual to the degree that a combination of those columns, with the knobs inside their ranges,
 reproduces it (``closure``). Adding an effect means adding a ``Candidate`` here (and, for a new
 physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes. A sensor
-effect's ``declare`` adds a declaration the simulator ignores (``identify.problem``'s
+effect's ``declare`` adds a declaration the simulator ignores (``mosiv_ros.simulation``'s
 ``SENSOR_EFFECTS``); its ``observe`` does the work.
 
 The library (``LIBRARY``):

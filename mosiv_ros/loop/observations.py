@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from mosiv_ros.io.recording import FrameSet, Recording, match_frames
 from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
-from mosiv_ros.pipeline import RunConfig
+from mosiv_ros.prepare import RunConfig
 from mosiv_ros.recon.reconstruct import ObservedFrame, Reconstructor
 
 

@@ -1,6 +1,6 @@
 """``mosiv close-loop BAG --out DIR``: the loop on a recording, and its report.
 
-``close_loop(bag, out, config, loop)`` runs stages 1-2 (``pipeline.prepare``), the loop
+``close_loop(bag, out, config, loop)`` runs stages 1-2 (``prepare.prepare``), the loop
 (``closure.LoopClosure``) and writes into ``out``:
 
 - ``close_loop.json``: verdict, the families chosen for objects the scene leaves open, the
@@ -39,15 +39,14 @@ import numpy as np
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.estimates import ESTIMATES_FILE
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.io.files import OutputDir
+from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
 from mosiv_ros.loop.freeflight import MIN_FORCE, MIN_FRAMES, P_VALUE
 from mosiv_ros.loop.library import FieldCandidate, FloorTiltCandidate, tilt_degrees
 from mosiv_ros.loop.observations import Reobserver
-from mosiv_ros.pipeline import Prepared, RunConfig, prepare
+from mosiv_ros.prepare import Prepared, RunConfig, prepare
 from mosiv_ros.progress import Progress
-from mosiv_ros.report import jsonable
 from mosiv_ros.synth.ground_truth import ground_truth_if_any
 
 _LOG = logging.getLogger(__name__)
@@ -102,7 +101,7 @@ def write_loop_report(out: OutputDir, result: LoopResult, prepared: Prepared | N
     out.write_text("closed_scene.yaml", scene_to_yaml(result.after.scene))
     out.write_text(ESTIMATES_FILE, result.after.estimates.file_text(ESTIMATES_FILE))
     plots = _plots(out, result)
-    out.write_text("close_loop.json", json.dumps(jsonable(report), indent=1))
+    out.write_text("close_loop.json", json.dumps(plain(report, null_nonfinite=True), indent=1))
     out.write_text("close_loop.md", _markdown(report, [p.name for p in plots]))
     return report
 

@@ -40,9 +40,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from mosiv_ros.evaluate.metrics import chamfer_distance
 from mosiv_ros.identify.losses import silhouette_loss
 from mosiv_ros.identify.observations import View
+from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 

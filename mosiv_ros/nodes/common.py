@@ -35,7 +35,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from mosiv_ros.config import LiftingConfig, check, describe, value_range
+from mosiv_ros.config import check, describe, value_range
 from mosiv_ros.io.errors import MosivIOError
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -251,9 +251,7 @@ def guarded(
 
 def lifted_from_msg(msg: Any) -> LiftedParticles:
     """A ``/mosiv/particles`` cloud as lifted particles (ValueError if it lacks their fields)."""
-    lifting = LiftingConfig()
-    return LiftedParticles.from_cloud(pointcloud_from_msg(msg), lifting.boundary_beta,
-                                      lifting.boundary_eps)
+    return LiftedParticles.from_cloud(pointcloud_from_msg(msg))
 
 
 def log_cloud(node: Node, topic: str, cloud: Any) -> None:

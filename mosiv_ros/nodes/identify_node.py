@@ -36,9 +36,10 @@ from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import ERROR
 from mosiv_ros.identify.family import candidate_families
 from mosiv_ros.identify.run import UNITS, failed_estimates, identify_objects
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.files import OutputDir, check_output_file
 from mosiv_ros.io.messages import pointcloud_from_msg
-from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.loop.closure import LoopClosure, LoopError
 from mosiv_ros.loop.report import write_loop_report

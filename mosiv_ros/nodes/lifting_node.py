@@ -4,8 +4,9 @@ Subscribes to ``/mosiv/observed_objects``; lifts the first frame in which every 
 (parameter ``scene``) has an occupied voxel (without a declaration: the first frame with any) with
 the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, latched (reliable +
 transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
-(float32), object_id, segment (uint16) and material (uint8, the family's index in
-``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared). The next ``consensus_frames``
+(float32), object_id, segment (uint16), material (uint8, the family's index in
+``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared), and boundary_beta, boundary_eps
+(float64: the node's parameters, which the consumers' boundary volumes use). The next ``consensus_frames``
 clouds trim each object's hull first (``mosiv_ros.lifting.consensus``): the node lifts once they
 have come, or ``consensus_timeout`` seconds after the first complete frame with those that did.
 Later frames are ignored.
@@ -19,9 +20,10 @@ from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
 from mosiv_ros.config import LiftingConfig
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.recording import PointCloud
-from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting import lift, missing_objects
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
 from mosiv_ros.recon import VOXEL_FIELD

@@ -33,8 +33,9 @@ from visualization_msgs.msg import MarkerArray
 
 from mosiv_ros.config import PredictionConfig
 from mosiv_ros.identify.estimates import ERROR, Estimates
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types
-from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.nodes.common import LATCHED_QOS, declare_config, guarded, lifted_from_msg, main_for
 from mosiv_ros.nodes.outputs import markers_msg, path_msg, statuses_of

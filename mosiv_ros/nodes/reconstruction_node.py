@@ -27,6 +27,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
 from mosiv_ros.config import ReconstructionConfig
+from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import (
     camera_info_from_msg,
     image_from_msg,
@@ -36,7 +37,7 @@ from mosiv_ros.io.messages import (
     transform_from_msg,
 )
 from mosiv_ros.io.recording import Camera, FrameMatcher, FrameSet
-from mosiv_ros.io.scene import Scene, load_scene
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, declare_config, guarded, main_for

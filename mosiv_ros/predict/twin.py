@@ -20,14 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from mosiv_ros.identify.estimates import Estimates
-from mosiv_ros.identify.fit import OFFSET
-from mosiv_ros.identify.problem import effects_of, ground_of
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.lifting.simulation import to_sim_particles
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.sim import ObjectModel, SimConfig, Simulator, domain_around
+from mosiv_ros.simulation import OFFSET, effects_of, ground_of, to_sim_particles
 
 _LOG = logging.getLogger(__name__)
 

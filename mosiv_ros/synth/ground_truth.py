@@ -21,6 +21,7 @@ import numpy as np
 import yaml
 
 from mosiv_ros.io.errors import BagError
+from mosiv_ros.io.files import plain
 
 GROUND_TRUTH_FILE = "ground_truth.yaml"
 PARTICLES_FILE = "ground_truth_particles.npz"
@@ -40,21 +41,6 @@ class GroundTruthParticles:
     def of_object(self, object_id: int) -> np.ndarray:
         """Positions (F, N_k, 3) of the particles of object ``object_id``."""
         return self.positions[:, self.object_id == object_id]
-
-
-def plain(value: Any) -> Any:
-    """``value`` with numpy arrays and scalars (nested in dicts, lists, tuples) made plain Python."""
-    if isinstance(value, dict):
-        return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return plain(value.tolist())
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    return value
 
 
 def write_ground_truth(bag: str | Path, document: dict[str, Any], particles: GroundTruthParticles) -> None:

@@ -1,15 +1,18 @@
-"""Evaluation metrics of a digital twin: 3D (CD, EMD) per object, 2D (IoU, PSNR, SSIM) per view.
+"""Geometry and image metrics: 3D (CD, EMD) of point sets, 2D (IoU, PSNR, SSIM) of images.
 
-- CD: Chamfer distance in metres, the mean of the two one-sided mean nearest-neighbour distances
-  (the definition ``recon.evaluation.chamfer`` uses, shared here);
+- CD: Chamfer distance in metres, CD(A, B) = (mean_a d(a, B) + mean_b d(b, A)) / 2, the mean of
+  the two one-sided mean nearest-neighbour distances (``mean_nearest_distance``);
 - EMD: earth mover's distance in metres, the mean distance of the optimal one-to-one matching
   of two equal-size random subsets (``EMD_POINTS`` points each; exact assignment);
 - IoU: intersection over union of two silhouettes;
 - PSNR (dB) and SSIM (Wang et al. 2004, Gaussian window sigma 1.5, on luminance) of two RGB
   images.
 
-What it is for: reports and benchmarks comparing a twin with observations or ground truth.
-What it is not for: the identifier's losses (``identify.losses``), which are squared and smooth.
+What it is for: every stage that measures how far two point sets or images are apart (the
+reconstruction figures, the family choice's held-out error, the loop's residual, the twin's
+scores); it depends on numpy and scipy only, so any layer may use it.
+What it is not for: the identifier's losses (``identify.losses``), which are squared and carry
+gradients.
 """
 
 from __future__ import annotations
@@ -17,18 +20,27 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
-
-from mosiv_ros.recon.evaluation import chamfer
 
 EMD_POINTS = 512
 
-__all__ = ["EMD_POINTS", "chamfer_distance", "emd", "iou", "psnr", "ssim"]
+__all__ = ["EMD_POINTS", "chamfer_distance", "emd", "iou", "mean_nearest_distance", "psnr", "ssim"]
+
+
+def mean_nearest_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean distance (m) from each point of ``a`` (N, 3) to its nearest in ``b`` (M, 3).
+
+    inf if one is empty.
+    """
+    if len(a) == 0 or len(b) == 0:
+        return float("inf")
+    return float(cKDTree(np.asarray(b, dtype=np.float64)).query(np.asarray(a, dtype=np.float64))[0].mean())
 
 
 def chamfer_distance(a: np.ndarray, b: np.ndarray) -> float:
     """Chamfer distance (m) of two point sets; inf if one is empty."""
-    return chamfer(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64))[0]
+    return (mean_nearest_distance(a, b) + mean_nearest_distance(b, a)) / 2.0
 
 
 def emd(a: np.ndarray, b: np.ndarray, points: int = EMD_POINTS, seed: int = 0) -> float:
