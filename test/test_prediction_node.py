@@ -115,6 +115,15 @@ def test_twin_what_if_rolls_from_the_first_observed_frame_with_the_request(prepa
     with pytest.raises(ValueError, match="unknown object 'ball'"):
         twin.what_if(WhatIf.parse("{ball: [1, 0, 0]}"), 0.2, 10.0)
 
+def _latch_particles(listener: Listener, prepared):
+    """Publish the recording's lifted particles on /mosiv/particles (latched): (publisher, message)."""
+    publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+    cloud = prepared.lifted.to_cloud()
+    message = pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id, prepared.frames[0].stamp_ns,
+                                cloud.frame_id, cloud.fields)
+    publisher.publish(message)
+    return publisher, message
+
 
 def _set(listener: Listener, client, name: str, value):
     """What ``ros2 param set`` does: one SetParameters call; its result."""
@@ -131,11 +140,7 @@ def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_req
     path = estimates.write(tmp_path / "material_estimates.yaml")
     listener = Listener("test_planner")
     try:
-        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
-        cloud = prepared.lifted.to_cloud()
-        particles = pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id, prepared.frames[0].stamp_ns,
-                                      cloud.frame_id, cloud.fields)
-        publisher.publish(particles)
+        _, particles = _latch_particles(listener, prepared)
         listener.subscribe(PathMsg, "/mosiv/predicted_paths/jelly", LATCHED)
         client = listener.node.create_client(SetParameters, "/prediction_node/set_parameters")
         # the estimates file is the node's params file, as `--params-file FILE` gives it
@@ -177,10 +182,7 @@ def test_prediction_node_refuses_parameters_out_of_range_with_the_reason_and_kee
     path = _estimates(prepared.frames[0].stamp_ns).write(tmp_path / "material_estimates.yaml")
     listener = Listener("test_prober")
     try:
-        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
-        cloud = prepared.lifted.to_cloud()
-        publisher.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id,
-                                            prepared.frames[0].stamp_ns, cloud.frame_id, cloud.fields))
+        _latch_particles(listener, prepared)
         client = listener.node.create_client(SetParameters, "/prediction_node/set_parameters")
         lifting = listener.node.create_client(SetParameters, "/lifting_node/set_parameters")
         specs = [NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 0.3, "device": "cpu"}),
@@ -218,10 +220,7 @@ def test_a_node_busy_in_a_long_callback_stops_on_sigterm_within_seconds(drop_bag
     path = _estimates(prepared.frames[0].stamp_ns).write(tmp_path / "material_estimates.yaml")
     listener = Listener("test_stopper")
     try:
-        publisher = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
-        cloud = prepared.lifted.to_cloud()
-        publisher.publish(pointcloud_to_msg(rclpy_types(), cloud.xyz, cloud.object_id,
-                                            prepared.frames[0].stamp_ns, cloud.frame_id, cloud.fields))
+        publisher, _ = _latch_particles(listener, prepared)
         spec = NodeSpec("prediction_node", {"scene": str(drop_bag), "horizon": 60.0, "device": "cpu"})
         with Graph([spec], params_file=path, sink=None) as graph:
             node = graph.nodes["prediction_node"]
