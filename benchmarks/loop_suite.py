@@ -6,9 +6,7 @@
 Every rosbag2 directory given, or found below a given directory, that carries a
 ``ground_truth.yaml`` goes through the loop closure (``mosiv close-loop``: ``loop.report``), its
 report written to ``OUT/<recording>/``. The truth's undeclared effects are what should be
-named: a library effect by its name (a tilted gravity by ``wind``, which stands for it), an
-effect outside the library (``periodic_field``) by nothing, and mask noise is not an effect to
-name. Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per recording the truth, the
+named (``mosiv_ros.loop.truth``). Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per recording the truth, the
 verdict, what was named with each fitted value's error against the truth, the held-out centroid
 error before and after, and the time; and a confusion table of the true undeclared effect
 against what was named, in which a wrong name is the worst cell. A recording whose loop fails
@@ -29,68 +27,17 @@ from pathlib import Path
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.config import HOLDOUT
+from mosiv_ros.io.bag import find_bags
 from mosiv_ros.io.files import plain
 from mosiv_ros.loop.closure import LoopConfig
 from mosiv_ros.loop.report import close_loop
+from mosiv_ros.loop.truth import expected, judge
 from mosiv_ros.synth.ground_truth import read_ground_truth
-
-STANDS_FOR = {"gravity": "wind"}
-"""Truth effect types the library names otherwise."""
-NOT_NAMED = {"mask_noise"}
-"""Truth effect types that are noise, not an effect to name."""
-OUTSIDE = {"periodic_field"}
-"""Truth effect types outside the library: the right answer is no name."""
 
 
 def recordings(paths: list[Path]) -> list[Path]:
     """Bag directories with a ground truth: the paths themselves, or found below them."""
-    found = []
-    for path in paths:
-        candidates = [path] if (path / "metadata.yaml").is_file() else sorted(
-            p.parent for p in path.rglob("metadata.yaml"))
-        found += [c for c in candidates if (c / "ground_truth.yaml").is_file()]
-    return found
-
-
-def expected(truth: dict) -> list[str]:
-    """The library names the loop should give: one per undeclared effect it can name."""
-    names = []
-    for effect in truth.get("effects", []):
-        kind = effect.get("type")
-        if effect.get("declared") or kind in NOT_NAMED or kind in OUTSIDE:
-            continue
-        names.append(STANDS_FOR.get(kind, kind))
-    return sorted(set(names))
-
-
-def value_errors(name: str, values: dict[str, float], truth: dict) -> dict[str, float]:
-    """Each fitted knob of an accepted effect against the truth (relative, or absolute in SI)."""
-    effects = {STANDS_FOR.get(e["type"], e["type"]): e for e in truth.get("effects", [])
-               if not e.get("declared")}
-    effect = effects.get(name)
-    if effect is None:
-        return {}
-    params = effect.get("params", {})
-    errors = {}
-    for label, value in values.items():
-        inside = label[label.index("[") + 1: -1] if "[" in label else ""
-        if name in ("drag", "linear_drag", "damping"):
-            true = next(iter(params.values()), {}).get(inside)
-            if true:
-                errors[label] = (value - true) / true
-        elif name == "wind":
-            vector = params.get("a") or params.get("g")
-            if vector is not None:
-                errors[label] = value - float(vector[int(inside)])
-        elif name == "floor_tilt":
-            normal = params.get("normal")
-            if normal:
-                errors[label] = value - float(normal[int(inside)]) / float(normal[2])
-        elif name == "floor_friction":
-            errors[label] = (value - float(params["friction"])) / float(params["friction"])
-        elif name == "camera_time_offset" and params.get("camera") == inside:
-            errors[label] = value - float(params["offset"])
-    return errors
+    return [bag for bag in find_bags(paths) if (bag / "ground_truth.yaml").is_file()]
 
 
 def one(bag: Path, out: Path, config, loop: LoopConfig) -> dict:
@@ -104,26 +51,9 @@ def one(bag: Path, out: Path, config, loop: LoopConfig) -> dict:
         entry.update({"error": f"{type(error).__name__}: {error}", "trace": traceback.format_exc(),
                       "seconds": time.perf_counter() - start})
         return entry
-    named = [effect["name"] for effect in report["accepted"]]
-    entry.update({
-        "verdict": report["verdict"], "named": named,
-        "values": {e["name"]: e["values"] for e in report["accepted"]},
-        "value_errors": {e["name"]: value_errors(e["name"], e["values"], truth) for e in report["accepted"]},
-        "held_out_before": report["before"]["centroid_error"]["held_out"],
-        "held_out_after": report["after"]["centroid_error"]["held_out"],
-        "free_flight": report.get("free_flight"),
-        "seconds": time.perf_counter() - start,
-    })
-    entry["outcome"] = outcome(entry)
+    entry.update(judge(report, truth))
+    entry["seconds"] = time.perf_counter() - start
     return entry
-
-
-def outcome(entry: dict) -> str:
-    """'right', 'missed' (a present effect not named), 'wrong name' (one named that is not there)."""
-    wrong = set(entry["named"]) - set(entry["expected"])
-    if wrong:
-        return "wrong name"
-    return "right" if set(entry["named"]) == set(entry["expected"]) else "missed"
 
 
 def markdown(results: list[dict]) -> str:

@@ -2,6 +2,7 @@
 
     mosiv run BAG --out D    the whole pipeline in-process: estimates, twin and report in D
     mosiv close-loop BAG --out D   find an effect the model lacks, add it, report before/after
+    mosiv batch DIR... --out D     run (and close the loop on) every recording under DIR, with Ray
     mosiv graph BAG          replay BAG through the five nodes; estimates and report in --out
     mosiv info BAG           read a recording and summarise cameras, frames and objects
     mosiv make-sample-bag D  write the bundled analytic sample recording to D
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import yaml
 
-from mosiv_ros.config import HOLDOUT, STAGE_CONFIGS, describe
+from mosiv_ros.config import HOLDOUT, STAGE_CONFIGS, BatchConfig, describe
 from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
@@ -245,6 +246,31 @@ def cmd_close_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_batch(args: argparse.Namespace) -> int:
+    from mosiv_ros.batch import run_batch
+    from mosiv_ros.loop.closure import LoopConfig
+
+    config = run_config(args.params_file, args.device, holdout=args.holdout,
+                        render=not args.no_render)
+    batch = BatchConfig(address=args.address, cpus=args.cpus, close_loop=args.close_loop)
+    shown = ""
+
+    def progress(status) -> None:
+        nonlocal shown
+        if status.line() != shown:
+            shown = status.line()
+            print(f"mosiv batch: {shown}", flush=True)
+
+    report = run_batch(args.dirs, args.out, config, batch, LoopConfig(holdout=args.holdout), progress)
+    for entry in report["per_recording"]:
+        if entry["status"] == "failed":
+            print(f"mosiv batch: {entry['recording']} failed: {entry['error']} "
+                  f"(see {Path(args.out) / entry['recording']})", file=sys.stderr)
+    print(f"report: {Path(args.out) / 'batch.md'} ({report['done']} done, {report['failed']} failed"
+          f"{', interrupted' if report['interrupted'] else ''})")
+    return 130 if report["interrupted"] else 1 if report["failed"] else 0
+
+
 def graph_domain(choice: str, environ: dict[str, str]) -> tuple[dict[str, str], str]:
     """The environment a graph's nodes get for ``--domain-id`` ``choice``, and a line saying so.
 
@@ -398,6 +424,23 @@ def build_parser() -> argparse.ArgumentParser:
     loop.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
     loop.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
     loop.set_defaults(func=cmd_close_loop)
+
+    batch = sub.add_parser("batch", help="run (and close the loop on) every recording under the "
+                                         "directories, each a Ray task; resumable; one suite report")
+    batch.add_argument("dirs", nargs="+", type=Path, help="rosbag2 directories or directories holding them")
+    batch.add_argument("--out", type=Path, required=True, help="output directory: a folder per recording "
+                                                             "and the suite report (batch.md)")
+    batch.add_argument("--close-loop", action="store_true", help="also close the loop on each recording")
+    batch.add_argument("--params-file", type=Path, default=None,
+                       help="ROS 2 params file (default: config/mosiv.yaml's values)")
+    settings = {name: (default, text) for name, default, text in describe(BatchConfig)}
+    batch.add_argument("--address", default=settings["address"][0], help=settings["address"][1])
+    batch.add_argument("--cpus", type=int, default=settings["cpus"][0], help=settings["cpus"][1])
+    batch.add_argument("--holdout", type=float, default=HOLDOUT,
+                       help="fraction of the frames kept out of the fit and scored as future")
+    batch.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")
+    batch.add_argument("--no-render", action="store_true", help="skip the 2D scores (IoU, PSNR, SSIM)")
+    batch.set_defaults(func=cmd_batch)
 
     params = sub.add_parser("params", help="print every node's default parameters")
     params.set_defaults(func=cmd_params)

@@ -205,6 +205,17 @@ class PredictionConfig:
     scene: str = _param("", SCENE_HELP)
 
 
+@dataclass
+class BatchConfig:
+    """``mosiv batch``: where the recordings run (Ray) and what runs on each; not a node's."""
+
+    address: str = _param(
+        "", "Ray cluster to join (ray.init(address=...)), e.g. 'auto' or 'ray://head:10001'; empty = "
+        "a Ray of this machine's own, started for the batch and stopped after it.")
+    cpus: int = _param(0, "CPU cores of the Ray started on this machine; 0 = all of them.", 0, 100000)
+    close_loop: bool = _param(False, "Also close the loop on each recording (mosiv close-loop).")
+
+
 STAGE_CONFIGS: dict[str, type] = {
     "bag_replay_node": ReplayConfig,
     "reconstruction_node": ReconstructionConfig,

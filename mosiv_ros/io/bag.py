@@ -4,7 +4,8 @@ What it is for: ``read_recording`` / ``write_recording`` between a bag directory
 and an in-memory ``Recording``; ``iter_raw_messages`` / ``list_topics`` for replaying a bag's
 serialized CDR messages unchanged; ``read_custom_data`` for its metadata; ``load_scene`` for a
 scene declaration from a bag, a file or inline text (the nodes' ``scene`` parameter; here, above
-``io.scene``, because a bag's declaration is read from its metadata). Every problem with a bag
+``io.scene``, because a bag's declaration is read from its metadata); ``find_bags`` for the bags
+under directories (``mosiv batch``). Every problem with a bag
 is raised as ``BagError`` naming the bag, the topic and the problem; errors of the storage
 libraries are wrapped here, at the boundary.
 What it is not for: live topics, message conversion (``mosiv_ros.io.messages``), scene schema
@@ -157,6 +158,24 @@ def _check_bag_dir(path: Path) -> None:
         raise BagError(path, None, "is a file, not a rosbag2 directory (with metadata.yaml)")
     if not (path / "metadata.yaml").is_file():
         raise BagError(path, None, "no metadata.yaml: not a rosbag2 directory")
+
+
+def find_bags(paths: Iterable[str | Path]) -> list[Path]:
+    """The rosbag2 directories among ``paths`` or below them (any depth), in order, each once.
+
+    A path that is not a directory, or holds no bag, is a ``BagError``: a mistyped path is not
+    an empty batch.
+    """
+    found: list[Path] = []
+    for path in map(Path, paths):
+        if not path.is_dir():
+            raise BagError(path, None, "does not exist" if not path.exists() else "is not a directory")
+        bags = [path] if (path / "metadata.yaml").is_file() else sorted(
+            p.parent for p in path.rglob("metadata.yaml"))
+        if not bags:
+            raise BagError(path, None, "holds no rosbag2 directory (no metadata.yaml below it)")
+        found += [bag for bag in bags if bag not in found]
+    return found
 
 
 @contextmanager

@@ -62,17 +62,22 @@ def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None
     """
     directory = OutputDir(out, f"mosiv close-loop {bag}")  # before any work: a bad place fails now
     config = config or RunConfig()
+    return close_loop_prepared(prepare(bag, config, progress), directory, config, loop, progress)
+
+
+def close_loop_prepared(prepared: Prepared, out: OutputDir, config: RunConfig,
+                        loop: LoopConfig | None = None, progress: Progress | None = None) -> dict:
+    """``close_loop`` on a recording whose stages 1-2 are done (``mosiv batch`` shares them)."""
     loop = loop or LoopConfig(holdout=config.holdout)
     identify = config.identify
     if not identify.checkpoint_dir:
-        identify = replace(identify, checkpoint_dir=str(Path(out) / "checkpoints"))
-    prepared = prepare(bag, config, progress)
+        identify = replace(identify, checkpoint_dir=str(out.path / "checkpoints"))
     closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene,
                           identify, loop, views_of(prepared.recording),
                           prepared.recording.gripper_poses, progress=progress,
                           reobserver=Reobserver(prepared.recording, config))
     result = closure.run()
-    return write_loop_report(directory, result, prepared, config.render)
+    return write_loop_report(out, result, prepared, config.render)
 
 
 def write_loop_report(out: OutputDir, result: LoopResult, prepared: Prepared | None = None,
