@@ -189,3 +189,32 @@ def test_a_batch_on_a_local_ray_reports_the_corrupt_recording_finishes_the_rest_
     again = json.loads((out / "batch.json").read_text())
     assert [e for e in again["per_recording"] if e["status"] == "done"] == [
         e for e in report["per_recording"] if e["status"] == "done"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_cancels_the_running_recording_and_keeps_the_finished_ones(tiny_suite, tiny_params, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out"
+    env = {**os.environ, "RAY_DEFAULT_OBJECT_STORE_MAX_MEMORY_BYTES": str(100 * 2**20),
+           "RAY_USAGE_STATS_ENABLED": "0"}
+    batch = subprocess.Popen(  # one core: the recordings run one after another
+        [sys.executable, "-m", "mosiv_ros", "batch", str(tiny_suite), "--out", str(out), "--params-file",
+         str(tiny_params), "--cpus", "1", "--no-render"], env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 400
+    while not list(out.glob(f"*/{SUMMARY}")) and batch.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    batch.send_signal(signal.SIGINT)  # the next recording has just started
+    printed, _ = batch.communicate(timeout=120)
+    assert batch.returncode == 130, printed
+    finished = [p.parent.name for p in out.glob(f"*/{SUMMARY}")]
+    assert len(finished) == 1 and json.loads((out / finished[0] / SUMMARY).read_text())["status"] == "done"
+    report = json.loads((out / "batch.json").read_text())
+    assert report["interrupted"] and (report["done"], report["failed"]) == (1, 1)
+    assert [e["recording"] for e in report["per_recording"] if e["status"] == "done"] == finished
+    assert "interrupted" in printed and "interrupted (Ctrl-C)" in (out / "batch.md").read_text()
