@@ -7,9 +7,9 @@ Every rosbag2 directory given, or found below a given directory, that carries a
 ``ground_truth.yaml`` goes through the loop closure (``mosiv close-loop``: ``loop.report``), its
 report written to ``OUT/<recording>/``. The truth's undeclared effects are what should be
 named (``mosiv_ros.loop.truth``). Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per
-recording the truth, the verdict, what was named with each fitted value's error against the truth, the held-out centroid
-error before and after, and the time; and a confusion table of the true undeclared effect
-against what was named, in which a wrong name is the worst cell. A recording whose loop fails
+recording the truth, the verdict, what was named with each fitted value's error against the
+truth, the held-out centroid error before and after, and the time; and a confusion table of
+the true undeclared effect against what was named, in which a wrong name is the worst cell. A recording whose loop fails
 keeps its error and the others go on.
 """
 
