@@ -10,7 +10,9 @@ named: a library effect by its name (a tilted gravity by ``wind``, which stands 
 effect outside the library (``periodic_field``) by nothing, and mask noise is not an effect to
 name. Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per recording the truth, the
 verdict, what was named with each fitted value's error against the truth, the held-out centroid
-error before and after, and the time; and a confusion table of the true undeclared effect
+error before and after, that of the first round's control (the declared model refitted with a
+candidate's budget: how far refits of one model spread), the reconstruction's own (the floor: the
+recorder's particles as the prediction), and the time; and a confusion table of the true undeclared effect
 against what was named, in which a wrong name is the worst cell. A recording whose loop fails
 keeps its error and the others go on.
 """
@@ -111,6 +113,9 @@ def one(bag: Path, out: Path, config, loop: LoopConfig) -> dict:
         "value_errors": {e["name"]: value_errors(e["name"], e["values"], truth) for e in report["accepted"]},
         "held_out_before": report["before"]["centroid_error"]["held_out"],
         "held_out_after": report["after"]["centroid_error"]["held_out"],
+        "held_out_control": next((r["control"]["centroid_error"]["held_out"] for r in report["rounds"]
+                                  if r.get("control")), None),
+        "held_out_floor": (report.get("reconstruction_floor") or {}).get("held_out"),
         "free_flight": report.get("free_flight"),
         "seconds": time.perf_counter() - start,
     })
@@ -129,16 +134,18 @@ def outcome(entry: dict) -> str:
 def markdown(results: list[dict]) -> str:
     lines = ["# Loop closure suite", "",
              "| recording | undeclared (to name) | verdict | named | value errors | held-out before -> after (mm) "
-             "| outcome | time (s) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| control (mm) | floor (mm) | outcome | time (s) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         if "error" in r:
             lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | error: {r['error'][:80]} "
-                         f"| | | | | {r['seconds']:.0f} |")
+                         f"| | | | | | | {r['seconds']:.0f} |")
             continue
         errors = "; ".join(f"{k} {v:+.3g}" for effect in r["value_errors"].values() for k, v in effect.items())
         lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | {r['verdict']} | "
                      f"{', '.join(r['named']) or 'nothing'} | {errors} | {r['held_out_before'] * 1e3:.1f} -> "
-                     f"{r['held_out_after'] * 1e3:.1f} | {r['outcome']} | {r['seconds']:.0f} |")
+                     f"{r['held_out_after'] * 1e3:.1f} | {_mm(r['held_out_control'])} | {_mm(r['held_out_floor'])} | "
+                     f"{r['outcome']} | {r['seconds']:.0f} |")
     counts = Counter((", ".join(r["expected"]) or "none", ", ".join(r["named"]) or "nothing")
                      for r in results if "error" not in r)
     columns = sorted({named for _, named in counts})
@@ -149,6 +156,10 @@ def markdown(results: list[dict]) -> str:
     tally = Counter(r.get("outcome", "error") for r in results)
     lines += ["", ", ".join(f"{k}: {v}" for k, v in sorted(tally.items()))]
     return "\n".join(lines) + "\n"
+
+
+def _mm(metres: float | None) -> str:
+    return "" if metres is None else f"{metres * 1e3:.1f}"
 
 
 def main() -> int:

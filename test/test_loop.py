@@ -211,6 +211,11 @@ def test_mosiv_close_loop_writes_the_report_and_a_rerun_resumes_every_fit(tmp_pa
     assert [e["name"] for e in report["accepted"]] == ["drag"]
     assert report["after"]["metrics"]["future"]["cd"] < report["before"]["metrics"]["future"]["cd"]
     assert report["truth_effects"][0]["type"] == "drag"
+    # the reconstruction's own centroid error (the recorder's particles as the prediction): the
+    # floor under every model's, a voxel's fraction on this recording
+    floor = report["reconstruction_floor"]
+    assert 0 < floor["held_out"] < 0.003 and floor["held_out"] < report["after"]["centroid_error"]["held_out"]
+    assert "the truth (the recorder's particles)" in (out / "close_loop.md").read_text()
     for name in ("close_loop.md", "closed_scene.yaml", "estimates.yaml", "jelly_paths.png",
                  "jelly_residual.png", "ranking.png"):
         assert (out / name).stat().st_size > 100
