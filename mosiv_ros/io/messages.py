@@ -53,6 +53,8 @@ INTEGER_CLOUD_FIELDS: dict[str, np.dtype] = {
     "object_id": np.dtype(np.uint16),
     "material": np.dtype(np.uint8),
     "segment": np.dtype(np.uint16),
+    "rgb": np.dtype(np.uint32),
+    "track_id": np.dtype(np.uint32),
 }
 """PointCloud2 fields written as unsigned integers."""
 FLOAT64_CLOUD_FIELDS = ("boundary_beta", "boundary_eps")
