@@ -342,12 +342,13 @@ def _voxel_colours(views: list[View], object_id: int, centres: np.ndarray, voxel
                    surface: np.ndarray) -> np.ndarray:
     """Colours (M, 3) uint8 of surface voxel centres, from the pixels whose rays enter them first.
 
-    Each object pixel's ray is followed to the first voxel it enters; a surface voxel takes the
-    mean colour of those pixels, or the nearest such voxel's colour where no ray enters it.
+    Each object pixel's ray (of a pixel the recorded and the filtered mask both give the object)
+    is followed to the first voxel it enters; a surface voxel takes the mean colour of those
+    pixels, or the nearest such voxel's colour where no ray enters it.
     """
     hits, rgb = [], []
     for view in views:
-        row, col = np.nonzero(view.labels == object_id)
+        row, col = np.nonzero((view.labels == object_id) & (view.mask == object_id))
         points = view.first_hits(col, row, centres, voxel_size)
         found = np.isfinite(points[:, 0])
         hits.append(points[found])

@@ -192,11 +192,8 @@ class SurfaceTracker:
                 continue
             forward = self.flow.calc(first, second, None)
             backward = self.flow.calc(second, first, None)
-            uv = live.uv[mine]
-            moved = uv + _bilinear(forward, uv)
-            error = np.linalg.norm(moved + _bilinear(backward, moved) - uv, axis=1)
-            with np.errstate(invalid="ignore"):
-                ok = (error <= self.tolerance) & _on_object(after[1] == object_id, moved)
+            moved, error, ok = forward_backward(forward, backward, live.uv[mine], self.tolerance)
+            ok &= _on_object(after[1] == object_id, moved)
             track = live.select(mine)
             track.confidence = track.confidence * (1.0 - (error / self.tolerance) ** 2)
             kept.append(track.select(ok, moved))
@@ -239,6 +236,20 @@ class SurfaceTracker:
                 xyz[mine] = view.first_hits(live.uv[mine, 0], live.uv[mine, 1], geometry.occupancy,
                                             geometry.voxel_size)
         return xyz
+
+
+def forward_backward(forward: np.ndarray, backward: np.ndarray, uv: np.ndarray,
+                     tolerance: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points (K, 2) moved by a forward flow (H, W, 2), and the forward-backward check.
+
+    (moved positions, error px, passed): the error is how far the backward flow at the moved
+    position misses the start; a point passes when it is at most ``tolerance`` (NaN: outside
+    the image, fails).
+    """
+    moved = uv + _bilinear(forward, uv)
+    error = np.linalg.norm(moved + _bilinear(backward, moved) - uv, axis=1)
+    with np.errstate(invalid="ignore"):
+        return moved, error, error <= tolerance
 
 
 def _isolate(grey: np.ndarray, inside: np.ndarray) -> np.ndarray | None:

@@ -65,6 +65,8 @@ class View:
         self.intrinsics = camera.intrinsics
         self.T_optical_world = np.linalg.inv(camera.T_world_optical)
         self.labels = majority_filter(frame.mask, mask_filter)
+        self.mask = frame.mask
+        """The mask as recorded: a pixel's colour is an object's only where both labels agree."""
         self.rgb = frame.rgb
         self.depth = frame.depth if use_depth else None
         self.height, self.width = self.labels.shape
