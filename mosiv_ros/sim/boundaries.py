@@ -43,14 +43,14 @@ GROUND_PARAMS = (
 class GroundPlane:
     """What the kernels read of the ground plane.
 
-    ``present`` (0: no ground), and every ``GROUND_PARAMS`` entry under its name without
-    ``ground.``: the replicated parameter array (height and friction one per batch, normal three).
+    Every ``GROUND_PARAMS`` entry under its name without ``ground.``: the replicated parameter
+    array (height and friction one per batch, normal three); ``present`` is 0 without a ground.
     """
 
-    present: int
     height: wp.array(dtype=float)
     normal: wp.array(dtype=float)
     friction: wp.array(dtype=float)
+    present: int
 
 
 @wp.struct

@@ -9,6 +9,11 @@ Eq. 123) and APIC affine velocity fields C (Jiang et al. 2015). Layouts:
   node = (i * ny + j) * nz + l on a dense nx * ny * nz grid of spacing dx whose node (0, 0, 0) is
   at ``lo``.
 
+Arguments come bundled in ``wp.struct``s: ``Layout`` (the sizes and geometry above), ``State``
+(particles), ``Grid`` (one substep's grid), ``materials.Materials``, ``boundaries.GroundPlane``
+and ``boundaries.Colliders``. Differentiated arrays sit in them too: ``wp.Tape`` builds a struct
+argument's adjoint from its array fields' ``.grad``. docs/simulator.md maps the substep.
+
 **Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
 contact algorithm for the material point method"; Huang et al. 2011): each object scatters to its
 own field, so objects do not stick together as on a single grid. At a node where two or more
