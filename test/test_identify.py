@@ -12,6 +12,7 @@ from sim_scenes import scene
 
 from mosiv_ros.config import FitConfig, IdentifyConfig
 from mosiv_ros.identify.coordinates import Coordinate
+from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
@@ -142,10 +143,10 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
         identifier = Identifier(problem, FitSettings(silhouette_weight=weight))
         velocity = np.zeros((1, 6))
         velocity[0, :3] = obs.initial_velocities()
-        u = identifier._pack()
-        identifier._apply(u, velocity)
-        whole = identifier._window_loss(0, obs.n_frames - 1, None, grad=False)[0]
-        searched = identifier.batch_losses(u[None], velocity, together=False)[0]
+        u = identifier.pack()
+        identifier.apply(u, velocity)
+        whole = identifier.window_loss(0, obs.n_frames - 1, None, grad=False)[0]
+        searched = identifier.search.batch_losses(u[None], velocity, together=False)[0]
         assert searched == pytest.approx(whole, rel=1e-6)
         losses[weight] = searched
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
@@ -162,15 +163,15 @@ def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
     candidates = np.array([[e.to_u(E), nu.to_u(v)] for E, v in
                            ((5e3, 0.3), (2e4, 0.4), (8e4, 0.2), (3e5, 0.35), (1e4, 0.1))])
     for together in (False, True):
-        expected = serial.batch_object_losses(candidates, velocity, together=together)
-        got = parallel.batch_object_losses(candidates, velocity, together=together)
+        expected = serial.search.batch_object_losses(candidates, velocity, together=together)
+        got = parallel.search.batch_object_losses(candidates, velocity, together=together)
         np.testing.assert_array_equal(got[0], expected[0])
         np.testing.assert_array_equal(got[1], expected[1])
-    assert len({n for n, _ in parallel._batches}) == 3  # single rows, and slices of 3 and 2 rows
+    assert len({n for n, _ in parallel.search.simulators}) == 3  # single rows, and slices of 3 and 2 rows
     with pytest.raises(ValueError, match="cpu_workers must be 0 .every core. or more, got -1"):
         Identifier(problem, FitSettings(cpu_workers=-1))
     # the time step matters: one row alone differs from the same row in the stiffest's batch
-    alone = serial.batch_losses(candidates, velocity, together=False)
+    alone = serial.search.batch_losses(candidates, velocity, together=False)
     assert not np.allclose(alone[:1], expected[0][:1], rtol=1e-9, atol=0)
 
 
@@ -200,10 +201,10 @@ def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(
         identifier = Identifier(problem, FitSettings(search_samples=6, search_rounds=1,
                                                      search_starts=starts))
         caplog.clear()
-        with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.fit"):
-            u = identifier._search(velocity)
+        with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.search"):
+            u = identifier.search.run(velocity)
         logged = re.findall(r"search start (\d+) of (\d+): loss (\S+): (.*)", caplog.text)
-        loss = identifier.batch_losses(u[None], velocity, together=False)[0]
+        loss = identifier.search.batch_losses(u[None], velocity, together=False)[0]
         ends[starts] = (loss, logged)
     (one_loss, one_logged), (three_loss, three_logged) = ends[1], ends[3]
     assert [(i, n) for i, n, _, _ in three_logged] == [("1", "3"), ("2", "3"), ("3", "3")]
@@ -376,18 +377,18 @@ def test_boundary_offset_gradient_matches_finite_differences():
     identifier = Identifier(problem, FitSettings(fit_velocity=False))
     i = next(k for k, e in enumerate(identifier.entries) if e.label == f"a.{OFFSET}")
     coordinate = identifier.entries[i].coordinate
-    u = identifier._pack()
+    u = identifier.pack()
     u[i] = coordinate.to_u(-0.001)
     velocity = np.array([[1.0, 0, 0, 0, 0, 0], [-1.0, 0, 0, 0, 0, 0]])
-    identifier._apply(u, velocity)
-    _, du, _, _ = identifier._window_loss(0, 6, None, grad=True)
+    identifier.apply(u, velocity)
+    _, du, _, _ = identifier.window_loss(0, 6, None, grad=True)
     analytic = du[i] / coordinate.dtheta_du(u[i])  # dL/d(offset), per metre
     values = []
     for sign in (1, -1):
         shifted = u.copy()
         shifted[i] = coordinate.to_u(-0.001 + sign * 1e-5)  # 1 % of the shell's volume
-        identifier._apply(shifted, velocity)
-        values.append(identifier._window_loss(0, 6, None, grad=False)[0])
+        identifier.apply(shifted, velocity)
+        values.append(identifier.window_loss(0, 6, None, grad=False)[0])
     numeric = (values[0] - values[1]) / 2e-5
     assert numeric != 0.0
     # measured 6 % apart (the sigmoid's curvature makes steps of 5e-5 m and more drift away)
@@ -452,21 +453,20 @@ def test_only_density_ratios_are_free_the_scale_is_declared_or_the_first_objects
 def test_after_a_divergence_with_no_step_left_to_undo_the_fit_goes_back_to_its_best_point():
     # A point can pass one window and diverge on the next: undoing "the last step" again would
     # leave the fit trying it for the rest of the stage (seen on sand_and_elastic: 12 times).
-    from mosiv_ros.identify.fit import _Adam
-
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2})
     identifier = Identifier(problem, settings)
-    u, velocity = identifier._pack(), np.zeros((1, 6))
-    adam = _Adam(np.full(len(u) + 6, 0.1))
+    u, velocity = identifier.pack(), np.zeros((1, 6))
+    adam = Adam(np.full(len(u) + 6, 0.1))
     step = adam.step(np.ones(len(u) + 6))
-    moved = u + step[:len(u)]
-    back_u, _, what = identifier._retreat(adam, moved, velocity + step[len(u):].reshape(1, 6))
+    state = FitState(u + step[:len(u)], velocity + step[len(u):].reshape(1, 6), adam, (u - 1.0, velocity))
+    back_u, back_velocity, what = identifier.curriculum.retreat(state)
     np.testing.assert_allclose(back_u, u)
+    np.testing.assert_allclose(back_velocity, velocity)
     assert what == "step undone"
-    identifier.start = (u - 1.0, velocity)
-    assert identifier._retreat(adam, back_u, velocity)[2] == "back to the search's point"
-    identifier.best = (1e-3, u + 0.5, velocity + 0.1, np.zeros(1))
-    best_u, best_velocity, what = identifier._retreat(adam, back_u, velocity)
+    state.u, state.velocity = back_u, back_velocity
+    assert identifier.curriculum.retreat(state)[2] == "back to the search's point"
+    state.best = (1e-3, u + 0.5, velocity + 0.1, np.zeros(1))
+    best_u, best_velocity, what = identifier.curriculum.retreat(state)
     np.testing.assert_allclose(best_u, u + 0.5)
     np.testing.assert_allclose(best_velocity, velocity + 0.1)
     assert what == "back to the best whole-window point"
@@ -477,18 +477,19 @@ def test_a_last_adam_step_that_diverges_loses_to_the_points_before_it():
     # recording one diverged there and the whole identification failed
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6)
     identifier = Identifier(problem, settings)
-    u, velocity = identifier._pack(), np.zeros((1, 6))
+    u, velocity = identifier.pack(), np.zeros((1, 6))
     velocity[0, :3] = problem.observations.initial_velocities()
-    identifier.start = (u.copy(), velocity.copy())
     diverging = velocity.copy()
     diverging[0, 0] = 20.0  # thrown at the domain's wall: the cube inverts in the first frame
-    with pytest.raises(SimulationDiverged):  # with no other point to fall back on
-        identifier._final(u, diverging, iterated=False)
-    end_u, end_velocity, loss, _ = identifier._final(u + 0.1, diverging, iterated=True)
+    adam = Adam(np.full(len(u) + 6, 0.1))
+    with pytest.raises(SimulationDiverged):  # no iteration: no other point to fall back on
+        identifier._final(FitState(u, diverging, adam, (u.copy(), velocity.copy())))
+    iterated = FitState(u + 0.1, diverging, adam, (u.copy(), velocity.copy()), history=[{"loss": 1.0}])
+    end_u, end_velocity, loss, _ = identifier._final(iterated)
     np.testing.assert_allclose(end_u, u)
     np.testing.assert_allclose(end_velocity, velocity)
-    identifier._apply(u, velocity)
-    assert loss == identifier._window_loss(0, 6, None, grad=False)[0]
+    identifier.apply(u, velocity)
+    assert loss == identifier.window_loss(0, 6, None, grad=False)[0]
     assert identifier.sim.params.get("E")[0, 0] == pytest.approx(5e3, rel=1e-6)  # applied
 
 
@@ -524,8 +525,8 @@ def test_the_silhouette_loss_renders_the_particles_inside_the_surface_not_the_bo
                              boundary=Boundary(sdf, cube[1], 5e3, 1e-4, 0.01))
         identifier = Identifier(problem, FitSettings(fit_velocity=False, silhouette_weight=1.0,
                                                      chamfer_weight=0.0))
-        identifier._apply(identifier._pack(), np.zeros((1, 6)))
-        losses.append(identifier._window_loss(0, 4, None, grad=False)[0])
+        identifier.apply(identifier.pack(), np.zeros((1, 6)))
+        losses.append(identifier.window_loss(0, 4, None, grad=False)[0])
     plain, banded = losses
     assert plain > 0.0
     assert banded == pytest.approx(plain, rel=0.02)
@@ -546,7 +547,7 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     # the same curvature from single rollouts: sqrt(2 L / (terms * d2L/du2)) along log E
     h = CURVATURE_STEP
     shifted = [result.u + np.array([s * h, 0.0, 0.0]) for s in (0.0, 1.0, -1.0)]
-    base, up, down = identifier.batch_losses(np.array(shifted), result.velocity, together=True)
+    base, up, down = identifier.search.batch_losses(np.array(shifted), result.velocity, together=True)
     assert std[0] == pytest.approx(np.sqrt(2 * base / (8 * (up - 2 * base + down) / h**2)), rel=1e-6)
     cube = estimates_of(identifier, result, std).objects[0]
     assert cube.level == WARN and cube.message.startswith("poorly identified: ")
