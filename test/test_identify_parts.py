@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from test_identify import _cube_problem
 
+from mosiv_ros.config import updated
 from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE, Checkpoint, signature
 from mosiv_ros.identify.curriculum import Adam, FitState, window_starts
 from mosiv_ros.identify.fit import Identifier
@@ -82,7 +83,7 @@ def test_a_fits_signature_changes_with_its_problem_and_result_settings_only():
                      replace(settings, cpu_workers=1, checkpoint_dir="elsewhere").result_settings())
     assert same == base
     assert signature(problem, [e.label for e in labels],
-                     replace(settings, iterations=7).result_settings()) != base
+                     updated(settings, {"curriculum.iterations": 7}).result_settings()) != base
     assert signature(problem, ["cube.nu"], settings.result_settings()) != base
     shorter, _ = _cube_problem({"E": 2e4}, {"E": 5e3}, ["E"], frames=2)
     assert signature(shorter, [e.label for e in labels], settings.result_settings()) != base

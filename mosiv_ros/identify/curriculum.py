@@ -1,10 +1,10 @@
 """The gradient fit: Adam over a horizon curriculum of windows, resynchronised (MOSIV stage 3).
 
 ``Curriculum(identifier).run(state, saved)`` takes a ``FitState`` (the point Adam starts from,
-or where an interrupted fit stopped) through the curriculum stages ``settings.curriculum``:
+or where an interrupted fit stopped) through the curriculum stages ``settings.curriculum.horizons``:
 
 - horizon curriculum (M-PhyGs temporal mini-batches, MOSIV horizon curriculum): stage h fits
-  windows of h frames, up to ``windows`` of them spread over the sequence and taken in turn
+  windows of h frames, up to ``curriculum.windows`` of them spread over the sequence and taken in turn
   (``window_starts``); the last stage (0) fits the whole sequence from frame 0;
 - resynchronisation (MOSIV): a window that starts at frame s > 0 starts from the state of an
   anchor rollout with the current parameters at s, each object's particles shifted (and their
@@ -114,7 +114,7 @@ class Curriculum:
     def stages(self) -> list[int]:
         """Each stage's window length in frames (the whole sequence for 0 or longer)."""
         n = self.identifier.problem.observations.n_frames - 1
-        return [h if 0 < h < n else n for h in self.identifier.settings.curriculum]
+        return [h if 0 < h < n else n for h in self.identifier.settings.curriculum.horizons]
 
     def run(self, state: FitState, saved: Callable[[FitState], None]) -> FitState:
         """Iterate from ``state`` to the curriculum's end; ``saved(state)`` after every iteration."""
@@ -125,9 +125,9 @@ class Curriculum:
         stage0, iteration0 = state.stage, state.iteration
         for stage in range(stage0, len(stages)):
             length = stages[stage]
-            starts = window_starts(n, length, s.windows)
+            starts = window_starts(n, length, s.curriculum.windows)
             anchor: dict[int, SimState] = {}
-            for iteration in range(iteration0 if stage == stage0 else 0, s.iterations):
+            for iteration in range(iteration0 if stage == stage0 else 0, s.curriculum.iterations):
                 tick = time.perf_counter()
                 u, velocity = state.u, state.velocity
                 fit.apply(u, velocity)
@@ -158,8 +158,8 @@ class Curriculum:
                           "loss": loss, "values": fit.values_of(state.u),
                           "seconds": time.perf_counter() - tick, **fit.timing}
                 state.history.append(record)
-                fit.report({"phase": "fit", "done": stage * s.iterations + iteration + 1,
-                            "total": len(stages) * s.iterations, **record})
+                fit.report({"phase": "fit", "done": stage * s.curriculum.iterations + iteration + 1,
+                            "total": len(stages) * s.curriculum.iterations, **record})
                 state.stage, state.iteration = stage, iteration + 1
                 saved(state)
         return state

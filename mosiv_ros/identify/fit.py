@@ -303,17 +303,17 @@ class Identifier:
         for f in range(1, length + 1):
             x = traj[f, 0].astype(np.float64)
             value, g, per_f = geometry_loss(x[inside], self.index[inside], obs.points[start + f],
-                                            s.per_object_loss, obs.trees(start + f))
-            total += s.chamfer_weight * value
-            dL[f, 0, inside] = s.chamfer_weight * g
+                                            s.loss.per_object, obs.trees(start + f))
+            total += s.loss.chamfer_weight * value
+            dL[f, 0, inside] = s.loss.chamfer_weight * g
             per += np.nan_to_num(per_f)
-        if s.silhouette_weight > 0 and obs.masks:
+        if s.loss.silhouette_weight > 0 and obs.masks:
             # the particles the Chamfer scores, not the boundary band outside the surface
             value, g = silhouette_losses(traj[1:, 0][:, inside], self.index[inside], obs.object_ids,
                                          obs.views, obs.masks[start + 1: start + length + 1],
-                                         s.splat_radius, s.per_object_loss, self.torch_device)
-            total += s.silhouette_weight * value
-            dL[1:, 0, inside] += s.silhouette_weight * g
+                                         s.splat_radius, s.loss.per_object, self.torch_device)
+            total += s.loss.silhouette_weight * value
+            dL[1:, 0, inside] += s.loss.silhouette_weight * g
         total, dL, per = total / length, dL / length, per / length
         self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:
@@ -350,8 +350,8 @@ class Identifier:
             known = np.isfinite(self.problem.initial_velocity[:, 0])
             velocity[known, :3] = self.problem.initial_velocity[known]
         u = self.pack()
-        adam = Adam(np.r_[np.full(len(u), s.learning_rate),
-                          np.full(velocity.size, s.velocity_learning_rate)])
+        adam = Adam(np.r_[np.full(len(u), s.curriculum.learning_rate),
+                          np.full(velocity.size, s.curriculum.velocity_learning_rate)])
         search_s = 0.0
         checkpoint = Checkpoint(s.checkpoint_dir, signature(
             self.problem, [e.label for e in self.entries], s.result_settings()))

@@ -2,9 +2,9 @@
 
 ``GlobalSearch(identifier).run(velocity)`` returns the coordinates (u) of the best point found,
 and leaves the identifier's simulator set to them. All its candidates are simulated in batched
-rollouts of the first ``search_frames`` frames (0 = all):
+rollouts of the first ``search.frames`` frames (0 = all):
 
-- ``search_samples`` points of a Latin hypercube over a box (``box``), which for a material
+- ``search.samples`` points of a Latin hypercube over a box (``box``), which for a material
   parameter is its prior range ``SEARCH_RANGES`` (a yield stress far above the true one leaves
   the loss flat, so no gradient finds the way down: the samples must land below it) and
   otherwise the initial value +- ``search_decades`` decades (scale parameters) or 2 logit units;
@@ -14,8 +14,8 @@ rollouts of the first ``search_frames`` frames (0 = all):
   (each object's loss depends mostly on its own parameters, so 32 samples search each object's
   few dimensions rather than all objects' together), whichever of the two fits better
   (``best``);
-- the ``search_starts`` best points of this first round are the starts: each then goes through
-  ``search_rounds`` more such rounds, each in a box 3x narrower than the last around its best
+- the ``search.starts`` best points of this first round are the starts: each then goes through
+  ``search.rounds`` more such rounds, each in a box 3x narrower than the last around its best
   so far (samples that move every coordinate at once follow the valleys of coupled parameters,
   such as E and nu, which one-coordinate-at-a-time passes stall in), and the lowest end wins.
   Several starts keep other basins alive: coupled parameters can explain the same motion twice
@@ -186,8 +186,8 @@ class GlobalSearch:
             b, f = job
             value, _, per = geometry_loss(traj[f, b, inside[b]].astype(np.float64),
                                           fit.index[inside[b]], obs.points[f],
-                                          s.per_object_loss, obs.trees(f))
-            return s.chamfer_weight * value, s.chamfer_weight * per
+                                          s.loss.per_object, obs.trees(f))
+            return s.loss.chamfer_weight * value, s.loss.chamfer_weight * per
 
         # KD-tree queries release the GIL: score candidates and frames in threads
         jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
@@ -195,11 +195,11 @@ class GlobalSearch:
             scored = list(pool.map(frame_loss, jobs))
         total = np.array([value for value, _ in scored]).reshape(n, frames).mean(axis=1)
         per = np.stack([per for _, per in scored]).reshape(n, frames, -1).mean(axis=1)
-        if s.silhouette_weight > 0 and obs.masks:
+        if s.loss.silhouette_weight > 0 and obs.masks:
             for b in range(n):  # as Identifier.window_loss: the particles inside the surface
-                silhouette = s.silhouette_weight / frames * silhouette_object_losses(
+                silhouette = s.loss.silhouette_weight / frames * silhouette_object_losses(
                     traj[1:frames + 1, b][:, inside[b]], fit.index[inside[b]], obs.object_ids,
-                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.per_object_loss,
+                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object,
                     fit.torch_device)
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
@@ -231,7 +231,7 @@ class GlobalSearch:
         than a search step gains). Best first, as (u, loss); empty if every candidate diverged.
         """
         s = self.identifier.settings
-        total, per = self.batch_object_losses(candidates, velocity, s.search_frames)
+        total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
         if np.all(np.isnan(total)):
             return []
         ranked = [candidates[i] for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
@@ -246,7 +246,7 @@ class GlobalSearch:
                 contenders.append(u)
         if len(contenders) == 1:
             return [(current.copy(), float(np.nanmin(total)))]
-        losses = self.batch_object_losses(np.array(contenders), velocity, s.search_frames,
+        losses = self.batch_object_losses(np.array(contenders), velocity, s.search.frames,
                                           together=False)[0]
         order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
         return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
@@ -270,28 +270,28 @@ class GlobalSearch:
             box_hi = np.where(ranged, np.minimum(box_hi, hi), box_hi)
             # Latin hypercube: every coordinate's range cut into as many strata as samples,
             # one sample per stratum, strata paired at random across coordinates
-            strata = np.stack([rng.permutation(s.search_samples) for _ in centre], axis=1)
-            unit = (strata + rng.random(strata.shape)) / s.search_samples
+            strata = np.stack([rng.permutation(s.search.samples) for _ in centre], axis=1)
+            unit = (strata + rng.random(strata.shape)) / s.search.samples
             return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
 
         def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
-            fit.report({"phase": "search", "done": done * s.search_samples,
-                        "total": rounds * s.search_samples})
+            fit.report({"phase": "search", "done": done * s.search.samples,
+                        "total": rounds * s.search.samples})
 
-        if s.search_samples > 0:
-            rounds = 1 + max(1, s.search_starts) * s.search_rounds  # fewer if starts diverge
+        if s.search.samples > 0:
+            rounds = 1 + max(1, s.search.starts) * s.search.rounds  # fewer if starts diverge
             searched(0)
             # the first round's best points are the starts: each narrows on its own basin
-            starts = round_(u, 0, max(1, s.search_starts))
-            rounds = 1 + len(starts) * s.search_rounds
+            starts = round_(u, 0, max(1, s.search.starts))
+            rounds = 1 + len(starts) * s.search.rounds
             searched(1)
             ends = []
             for k, (start, loss) in enumerate(starts):
-                for number in range(1, s.search_rounds + 1):
+                for number in range(1, s.search.rounds + 1):
                     found = round_(start, number, 1)
                     if found:
                         start, loss = found[0]
-                    searched(1 + k * s.search_rounds + number)
+                    searched(1 + k * s.search.rounds + number)
                 _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
                           fit.values_of(start))
                 ends.append((loss, start))
