@@ -29,7 +29,7 @@ import traceback
 from collections import Counter
 from pathlib import Path
 
-from mosiv_ros.cli import run_config
+from mosiv_ros.cli import add_loop_options, loop_options, run_config
 from mosiv_ros.config import HOLDOUT
 from mosiv_ros.io.files import plain
 from mosiv_ros.loop.closure import LoopConfig
@@ -168,8 +168,7 @@ def main() -> int:
     parser.add_argument("--params-file", type=Path, default=None)
     parser.add_argument("--device", default=None)
     parser.add_argument("--holdout", type=float, default=HOLDOUT)
-    parser.add_argument("--top-k", type=int, default=2)
-    parser.add_argument("--max-rounds", type=int, default=3)
+    add_loop_options(parser)
     parser.add_argument("--render", action="store_true", help="also score IoU, PSNR, SSIM")
     parser.add_argument("--out", type=Path, default=Path("out/loop_suite"))
     args = parser.parse_args()
@@ -179,7 +178,7 @@ def main() -> int:
         print("no recording with a ground_truth.yaml found", file=sys.stderr)
         return 2
     config = run_config(args.params_file, args.device, holdout=args.holdout, render=args.render)
-    loop = LoopConfig(holdout=args.holdout, top_k=args.top_k, max_rounds=args.max_rounds)
+    loop = LoopConfig(holdout=args.holdout, **loop_options(args))
     results = []
     for bag in bags:
         results.append(one(bag, args.out, config, loop))
