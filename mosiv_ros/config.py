@@ -81,6 +81,21 @@ class ReplayConfig:
 
 
 @dataclass
+class TrackConfig:
+    """Surface tracks of stage 1 (reconstruction_node parameters ``tracks.*``)."""
+
+    flow_tolerance: float = _param(
+        1.0, "Largest forward-backward optical flow error, pixels, of a track's step (a step that "
+        "misses it ends the track).", 0.01, 100.0)
+    spacing: float = _param(
+        3.0, "Smallest distance, pixels, between a new track and the object's other tracks in one camera.",
+        1.0, 1000.0)
+    quality: float = _param(
+        0.01, "A new track starts where the image's corner strength is at least this fraction of the "
+        "object's strongest (Shi-Tomasi quality level).", 1.0e-4, 1.0)
+
+
+@dataclass
 class ReconstructionConfig:
     """reconstruction_node: group camera frames by stamp, per-object geometry per frame (stage 1)."""
 
@@ -102,15 +117,7 @@ class ReconstructionConfig:
         3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).", 0, 31)
     partial_set_timeout: float = _param(
         0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.", 0.0, 60.0)
-    track_flow_tolerance: float = _param(
-        1.0, "Surface tracks: largest forward-backward optical flow error, pixels, of a track's step "
-        "(a step that misses it ends the track).", 0.01, 100.0)
-    track_spacing: float = _param(
-        3.0, "Surface tracks: smallest distance, pixels, between a new track and the object's "
-        "other tracks in one camera.", 1.0, 1000.0)
-    track_quality: float = _param(
-        0.01, "Surface tracks: a new track starts where the image's corner strength is at least "
-        "this fraction of the object's strongest (Shi-Tomasi quality level).", 1.0e-4, 1.0)
+    tracks: TrackConfig = _group(TrackConfig)
     scene: str = _param("", SCENE_HELP)
 
 

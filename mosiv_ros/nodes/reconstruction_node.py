@@ -68,7 +68,7 @@ class ReconstructionNode(Node):
         self.types = rclpy_types()
         self.observed_pub = self.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
         self.tracks_pub = self.create_publisher(PointCloud2, TRACKS_TOPIC, STREAM_QOS)
-        self.tracker = SurfaceTracker(self.config)
+        self.tracker = SurfaceTracker(self.config.tracks)
         self.assemblers: dict[str, CameraFrameAssembler] = {}
         self.transforms = StaticTransforms()
         self.matcher: FrameMatcher | None = None

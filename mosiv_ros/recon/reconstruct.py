@@ -394,7 +394,7 @@ def iter_reconstruct(recording: Recording, config: ReconstructionConfig,
                      scene: Scene | None = None) -> Iterable[ObservedFrame]:
     """``reconstruct_recording`` one frame at a time (for progress reporting)."""
     reconstructor = Reconstructor(recording.cameras, config,
-                                  scene if scene is not None else recording.scene, SurfaceTracker(config))
+                                  scene if scene is not None else recording.scene, SurfaceTracker(config.tracks))
     for message in reconstructor.notes:
         _LOG.warning(message)
     frame_sets = match_frames(recording.cameras, int(round(config.sync_tolerance * 1e9)))

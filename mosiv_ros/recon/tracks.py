@@ -5,13 +5,13 @@ ball, a pressed cube whose outline barely moves). ``SurfaceTracker`` runs beside
 stage 1 (``Reconstructor``): per camera and per object,
 
 1. seeds: Shi-Tomasi corners of the object's pixels (``cv2.goodFeaturesToTrack``: the relative
-   ``track_quality`` and the spacing ``track_spacing``, px) inside its mask shrunk by a pixel,
+   ``quality`` and the spacing ``spacing``, px, of ``config.TrackConfig``) inside its mask shrunk by a pixel,
    wherever no live track of the object is within the spacing; each new track gets a new id;
 2. 2D motion: dense DIS optical flow (``cv2.DISOpticalFlow``, at full resolution) of the grey
    image from the last frame to this one and back, on images in which everything outside the object's mask is set to
    the object's mean grey (so that neither the background nor another object drags the flow);
    a track moves by the forward flow at its position, and is kept only if the backward flow
-   brings it back to within ``track_flow_tolerance`` px (the forward-backward check) and it
+   brings it back to within ``flow_tolerance`` px (the forward-backward check) and it
    still lies on the object (all four pixels around it are the object's);
 3. 3D: with a depth image, the point at the bilinear depth around the track (all four pixels
    with a return); without one, where the track's ray first enters the object's carved voxels
@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from mosiv_ros.config import ReconstructionConfig
+from mosiv_ros.config import TrackConfig
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.recon.views import View
 
@@ -137,13 +137,13 @@ class _Live:
 class SurfaceTracker:
     """Surface tracks over a stream of frame sets, in stamp order (see the module docstring)."""
 
-    def __init__(self, config: ReconstructionConfig) -> None:
-        if config.track_flow_tolerance <= 0 or config.track_spacing <= 0:
-            raise ValueError(f"track_flow_tolerance and track_spacing must be positive, got "
-                             f"{config.track_flow_tolerance}, {config.track_spacing}")
-        self.tolerance = config.track_flow_tolerance
-        self.spacing = config.track_spacing
-        self.quality = config.track_quality
+    def __init__(self, config: TrackConfig) -> None:
+        if config.flow_tolerance <= 0 or config.spacing <= 0:
+            raise ValueError(f"tracks.flow_tolerance and tracks.spacing must be positive, got "
+                             f"{config.flow_tolerance}, {config.spacing}")
+        self.tolerance = config.flow_tolerance
+        self.spacing = config.spacing
+        self.quality = config.quality
         self.flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
         # Down to full resolution with small patches: an object may be only tens of pixels across
         # (the preset stops at half resolution, which doubled the tracks' drift on the sample bags).
