@@ -32,6 +32,7 @@ import numpy as np
 from objective_scan import asked_densities, declare_densities, with_true_particles_of
 
 from mosiv_ros.cli import run_config
+from mosiv_ros.config import updated
 from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.pipeline import run_prepared
 from mosiv_ros.prepare import RunConfig, prepare
@@ -86,8 +87,7 @@ def main() -> int:
                                                     args.true_particles, args.density)})
         print(json.dumps(plain(results[-1], null_nonfinite=True))[:2000], flush=True)
         if args.ablation:
-            union = dataclasses.replace(config, identify=dataclasses.replace(config.identify,
-                                                                          per_object_loss=False))
+            union = dataclasses.replace(config, identify=updated(config.identify, {"loss.per_object": False}))
             results.append({"loss": "scene_level",
                             **one(bag, union, args.out.parent / f"{bag.name}_scene_level",
                                   args.true_particles, args.density)})

@@ -8,9 +8,11 @@ Every rosbag2 directory given, or found below a given directory, that carries a
 report written to ``OUT/<recording>/``. The truth's undeclared effects are what should be
 named (``mosiv_ros.loop.truth``). Writes ``OUT/loop_suite.json`` and ``OUT/loop_suite.md``: per
 recording the truth, the verdict, what was named with each fitted value's error against the
-truth, the held-out centroid error before and after, and the time; and a confusion table of
-the true undeclared effect against what was named, in which a wrong name is the worst cell. A recording whose loop fails
-keeps its error and the others go on.
+truth, the held-out centroid error before and after, that of the first round's control (the
+declared model refitted with a candidate's budget: how far refits of one model spread), the
+reconstruction's own (the floor: the recorder's particles as the prediction), and the time; and
+a confusion table of the true undeclared effect against what was named, in which a wrong name is
+the worst cell. A recording whose loop fails keeps its error and the others go on.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import traceback
 from collections import Counter
 from pathlib import Path
 
-from mosiv_ros.cli import run_config
+from mosiv_ros.cli import add_loop_options, loop_options, run_config
 from mosiv_ros.config import HOLDOUT
 from mosiv_ros.io.bag import find_bags
 from mosiv_ros.io.files import plain
@@ -59,16 +61,18 @@ def one(bag: Path, out: Path, config, loop: LoopConfig) -> dict:
 def markdown(results: list[dict]) -> str:
     lines = ["# Loop closure suite", "",
              "| recording | undeclared (to name) | verdict | named | value errors | held-out before -> after (mm) "
-             "| outcome | time (s) |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| control (mm) | floor (mm) | outcome | time (s) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         if "error" in r:
             lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | error: {r['error'][:80]} "
-                         f"| | | | | {r['seconds']:.0f} |")
+                         f"| | | | | | | {r['seconds']:.0f} |")
             continue
         errors = "; ".join(f"{k} {v:+.3g}" for effect in r["value_errors"].values() for k, v in effect.items())
         lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | {r['verdict']} | "
                      f"{', '.join(r['named']) or 'nothing'} | {errors} | {r['held_out_before'] * 1e3:.1f} -> "
-                     f"{r['held_out_after'] * 1e3:.1f} | {r['outcome']} | {r['seconds']:.0f} |")
+                     f"{r['held_out_after'] * 1e3:.1f} | {_mm(r['held_out_control'])} | {_mm(r['held_out_floor'])} | "
+                     f"{r['outcome']} | {r['seconds']:.0f} |")
     counts = Counter((", ".join(r["expected"]) or "none", ", ".join(r["named"]) or "nothing")
                      for r in results if "error" not in r)
     columns = sorted({named for _, named in counts})
@@ -81,14 +85,17 @@ def markdown(results: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _mm(metres: float | None) -> str:
+    return "" if metres is None else f"{metres * 1e3:.1f}"
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("paths", nargs="+", type=Path, help="bag directories or directories holding bags")
     parser.add_argument("--params-file", type=Path, default=None)
     parser.add_argument("--device", default=None)
     parser.add_argument("--holdout", type=float, default=HOLDOUT)
-    parser.add_argument("--top-k", type=int, default=2)
-    parser.add_argument("--max-rounds", type=int, default=3)
+    add_loop_options(parser)
     parser.add_argument("--render", action="store_true", help="also score IoU, PSNR, SSIM")
     parser.add_argument("--out", type=Path, default=Path("out/loop_suite"))
     args = parser.parse_args()
@@ -98,7 +105,7 @@ def main() -> int:
         print("no recording with a ground_truth.yaml found", file=sys.stderr)
         return 2
     config = run_config(args.params_file, args.device, holdout=args.holdout, render=args.render)
-    loop = LoopConfig(holdout=args.holdout, top_k=args.top_k, max_rounds=args.max_rounds)
+    loop = LoopConfig(holdout=args.holdout, **loop_options(args))
     results = []
     for bag in bags:
         results.append(one(bag, args.out, config, loop))

@@ -6,7 +6,7 @@
 
 Builds the fit problem as ``mosiv run`` does (reconstruction, lifting, the first 70 % of the
 frames; ``--params-file`` gives the node parameters) and evaluates the identifier's own objective
-(``Identifier.batch_object_losses``: Chamfer and silhouette terms, mean over the fitted frames;
+(``GlobalSearch.batch_object_losses``: Chamfer and silhouette terms, mean over the fitted frames;
 on the CPU each row at its own stable time step) at a base point, then along one entry at a time
 from it (``--scan ball.nu=0.1,0.2``; entries are named as the fit names them: ``ball.E``,
 ``ground.friction``, ``clay.boundary_offset``).
@@ -207,7 +207,7 @@ def main() -> int:
             named.append((name, value))
     print(f"{len(rows)} rows over {window - 1} frames on {args.device} ...", flush=True)
     tick = time.perf_counter()
-    total, per = identifier.batch_object_losses(np.array(rows), v0)
+    total, per = identifier.search.batch_object_losses(np.array(rows), v0)
     seconds = time.perf_counter() - tick
     names = [obj.name for obj in problem.objects]
     results = [{"entry": entry, "value": value, "loss": float(t),

@@ -15,7 +15,10 @@ that lie nearer another object's particles than its own (separation at contact).
 first complete frame and print each object's particle volume against the ground-truth volume and
 against the volume the recorder renders (the union of its splat balls above the floor: what the
 cameras can see; the balls themselves for the shapes scene), the lattice cells shared between
-objects (must be 0) and the milliseconds per frame of both stages on this machine.
+objects (must be 0) and the milliseconds per frame of both stages on this machine. Surface
+tracks, with and without depth: per object and frame the tracks alive and the median 3D error
+(mm) of their motion since their first frame against the ground truth's
+(``mosiv_ros.recon.evaluation.track_errors``).
 """
 
 from __future__ import annotations
@@ -32,9 +35,9 @@ from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
 from mosiv_ros.lifting import lift_first_complete
 from mosiv_ros.metrics import chamfer_distance
-from mosiv_ros.recon import reconstruct_recording
+from mosiv_ros.recon import SurfaceTracks, reconstruct_recording
 from mosiv_ros.recon.carving import Lattice
-from mosiv_ros.recon.evaluation import union_of_balls_volume
+from mosiv_ros.recon.evaluation import track_errors, union_of_balls_volume
 from mosiv_ros.recon.reconstruct import Reconstructor
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
 from mosiv_ros.synth.shapes import START_NS, make_shapes_recording, shapes_spheres
@@ -90,6 +93,7 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
         frames = reconstruct_recording(recording, config)
         result["ms_per_frame"][f"reconstruct depth={use_depth}"] = (time.perf_counter() - start) / len(frames) * 1e3
         lattice = Reconstructor(recording.cameras, config, recording.scene).lattice
+        result.setdefault("tracks", {})[f"depth={use_depth}"] = track_figures(frames, truth)
         for frame in frames:
             index = int(np.argmin(np.abs(truth.stamps_ns - frame.stamp_ns)))
             trees = {i: cKDTree(truth.of_object(i)[index]) for i in recording.scene.ids}
@@ -128,6 +132,21 @@ def figures(name: str, recording, truth: GroundTruthParticles, voxel_size: float
     return result
 
 
+def track_figures(frames, truth: GroundTruthParticles) -> dict:
+    """Per object: tracks alive and their median error (mm) per frame (None where none is alive)."""
+    tracks = SurfaceTracks.of([frame.tracks for frame in frames])
+    index = [int(np.argmin(np.abs(truth.stamps_ns - stamp))) for stamp in tracks.stamps_ns]
+    errors = track_errors(tracks, truth.positions[index].astype(np.float64), truth.object_id)
+    figures = {}
+    for object_id in np.unique(tracks.object_id).tolist():
+        mine = errors[:, tracks.object_id == object_id]
+        figures[str(object_id)] = {
+            "alive": np.isfinite(mine).sum(axis=1).tolist(),
+            "median_mm": [float(np.median(row[np.isfinite(row)])) * 1e3 if np.isfinite(row).any() else None
+                          for row in mine]}
+    return figures
+
+
 def _ball_volume(object_id: int) -> float:
     radius = next(s.radius for s in shapes_spheres() if s.id == object_id)
     return 4.0 / 3.0 * np.pi * radius**3
@@ -152,6 +171,13 @@ def report(result: dict) -> None:
               f"vs rendered {row['rendered_cm3']:.1f} cm^3 "
               f"({(row['volume_cm3'] / row['rendered_cm3'] - 1) * 100:+.1f}%)")
     print(f"  lattice cells shared between objects: {lifted.get('shared_cells')}")
+    for run, objects in result.get("tracks", {}).items():
+        for object_id, row in objects.items():
+            median = [m for m in row["median_mm"] if m is not None]
+            print(f"  tracks {run} object {object_id}: alive {row['alive'][0]} at frame 0, "
+                  f"{min(row['alive'])}-{max(row['alive'])} per frame; median error mm, last frame "
+                  f"{median[-1]:.1f}, largest {max(median):.1f}")
+            print("    per frame median mm: " + " ".join(f"{m:.1f}" for m in median))
     print("  ms per frame: " + ", ".join(f"{k} {v:.0f}" for k, v in result["ms_per_frame"].items()))
 
 

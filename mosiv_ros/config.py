@@ -1,11 +1,14 @@
 """One configuration dataclass per stage, shared by the command line, the ROS nodes and the tests.
 
-Each field is a node parameter of the same name: its default is the parameter's default (also
-written in ``config/mosiv.yaml``), its ``help`` metadata is the parameter's description, its
-``range`` metadata, where it has one, the closed interval a number (or each number of a list)
-must lie in (the nodes declare it as the parameter's range and refuse other values, at start and
-at run time, as ``mosiv run`` refuses them in a params file: ``check``), and ``run_time`` says
-whether the node takes a change while it runs (it refuses a change of any other parameter).
+Each field is a node parameter of the same name, or a group of them (a dataclass of its own,
+``_group``): a group's name is their ROS namespace, ``search.samples`` the parameter ``samples``
+of the group ``search``, nested in a params file as ``search: {samples: 32}``. A field's
+default is the parameter's default (also written in ``config/mosiv.yaml``), its ``help``
+metadata is the parameter's description, its ``range`` metadata, where it has one, the closed
+interval a number (or each number of a list) must lie in (the nodes declare it as the
+parameter's range and refuse other values, at start and at run time, as ``mosiv run`` refuses
+them in a params file: ``check``), and ``run_time`` says whether the node takes a change while
+it runs (it refuses a change of any other parameter).
 Values are in SI units (seconds, metres) unless the name says otherwise.
 
 This module only describes settings; it does not read files or talk to ROS.
@@ -13,9 +16,14 @@ This module only describes settings; it does not read files or talk to ROS.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
+import typing
 from dataclasses import dataclass, field
 from typing import Any
+
+from mosiv_ros.io.scene import FAMILIES
 
 
 def _param(default: Any, help: str, low: float | None = None, high: float | None = None,
@@ -30,6 +38,11 @@ def _param(default: Any, help: str, low: float | None = None, high: float | None
     if isinstance(default, list):
         return field(default_factory=lambda: list(default), metadata=metadata)
     return field(default=default, metadata=metadata)
+
+
+def _group(config_type: type) -> Any:
+    """A dataclass field holding a group of parameters: their ROS namespace is the field's name."""
+    return field(default_factory=config_type, metadata={"group": config_type})
 
 
 HOLDOUT = 0.3
@@ -68,6 +81,21 @@ class ReplayConfig:
 
 
 @dataclass
+class TrackConfig:
+    """Surface tracks of stage 1 (reconstruction_node parameters ``tracks.*``)."""
+
+    flow_tolerance: float = _param(
+        1.0, "Largest forward-backward optical flow error, pixels, of a track's step (a step that "
+        "misses it ends the track).", 0.01, 100.0)
+    spacing: float = _param(
+        3.0, "Smallest distance, pixels, between a new track and the object's other tracks in one camera.",
+        1.0, 1000.0)
+    quality: float = _param(
+        0.01, "A new track starts where the image's corner strength is at least this fraction of the "
+        "object's strongest (Shi-Tomasi quality level).", 1.0e-4, 1.0)
+
+
+@dataclass
 class ReconstructionConfig:
     """reconstruction_node: group camera frames by stamp, per-object geometry per frame (stage 1)."""
 
@@ -89,6 +117,7 @@ class ReconstructionConfig:
         3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).", 0, 31)
     partial_set_timeout: float = _param(
         0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.", 0.0, 60.0)
+    tracks: TrackConfig = _group(TrackConfig)
     scene: str = _param("", SCENE_HELP)
 
 
@@ -121,30 +150,52 @@ class LiftingConfig:
 
 
 @dataclass
+class SearchConfig:
+    """The gradient-free search before Adam (identify_node parameters ``search.*``)."""
+
+    samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.", 0, 100000)
+    rounds: int = _param(
+        3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.", 0, 100)
+    starts: int = _param(
+        3, "Best points of the first search round that each go through the further rounds.", 1, 100)
+    frames: int = _param(0, "Frames the search simulates; 0 = the whole window.", 0, 100000)
+
+
+@dataclass
+class CurriculumConfig:
+    """Adam over a horizon curriculum of windows (identify_node parameters ``curriculum.*``)."""
+
+    horizons: list[int] = _param(
+        [5, 10, 15, 25, 0], "Window length of each curriculum stage in frames; 0 = all frames.", 0, 100000)
+    iterations: int = _param(20, "Optimiser iterations per curriculum stage.", 0, 100000)
+    windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.", 1, 1000)
+    learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.", 1.0e-6, 10.0)
+    velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.", 0.0, 10.0)
+
+
+@dataclass
+class LossConfig:
+    """The objective the search and Adam minimise (identify_node parameters ``loss.*``)."""
+
+    chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.", 0.0, 1.0e6)
+    silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.", 0.0, 1.0e6)
+    per_object: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+
+
+@dataclass
 class FitConfig:
     """The fit's own parameters: identify_node's that ``identify.fit.FitSettings`` takes too."""
 
-    cpu_workers: int = _param(
-        0, "On the CPU: simulations the batched losses (search, uncertainty) run side by side, one per "
-        "core; 0 = every core. The results do not depend on it.", 0, 1024)
-    curriculum: list[int] = _param([5, 10, 15, 25, 0], "Horizon curriculum in frames; 0 = all frames.", 0, 100000)
-    iterations: int = _param(20, "Optimiser iterations per curriculum stage.", 0, 100000)
-    learning_rate: float = _param(0.05, "Adam step size in the well-conditioned parameter coordinates.", 1.0e-6, 10.0)
-    velocity_learning_rate: float = _param(0.01, "Adam step size of initial velocities, m/s and rad/s.", 0.0, 10.0)
-    windows: int = _param(3, "Windows per curriculum stage, spread over the sequence; later ones resynced.", 1, 1000)
-    search_samples: int = _param(32, "Latin hypercube samples of the global search before Adam; 0 = none.", 0, 100000)
-    search_rounds: int = _param(
-        3, "Further search rounds, each sampling a 3x narrower box around the best so far; 0 = none.", 0, 100)
-    search_starts: int = _param(
-        3, "Best points of the first search round that each go through the further rounds.", 1, 100)
-    search_frames: int = _param(0, "Frames the search simulates; 0 = the whole window.", 0, 100000)
+    search: SearchConfig = _group(SearchConfig)
+    curriculum: CurriculumConfig = _group(CurriculumConfig)
+    loss: LossConfig = _group(LossConfig)
     max_modulus: float = _param(
         1.0e6, "Pa: the fit keeps E and bulk moduli at or below it (WARN when one ends there). A stiffer "
         "object hardly deforms at a reconstruction's millimetres and frame rate, and its simulation takes "
         "more time steps (as the square root of the modulus).", 1.0e4, 1.0e12)
-    chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.", 0.0, 1.0e6)
-    silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.", 0.0, 1.0e6)
-    per_object_loss: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    cpu_workers: int = _param(
+        0, "On the CPU: simulations the batched losses (search, uncertainty) run side by side, one per "
+        "core; 0 = every core. The results do not depend on it.", 0, 1024)
     checkpoint_dir: str = _param("", "Directory for fit checkpoints; empty = no checkpoints. A rerun resumes.")
 
 
@@ -160,7 +211,7 @@ class IdentifyConfig(FitConfig):
         False, "Also fit the objects' undeclared densities. Only their ratios show (in contact), so "
         "when no density is declared the lowest-id object's stays at its default and sets the scale.")
     families: list[str] = _param(
-        ["elastic", "plastic", "sand", "fluid"],
+        list(FAMILIES),
         "Candidate material families of an object whose family the scene does not declare: each "
         f"is fitted on the first {(1 - HOLDOUT) * 100:g} % of the window and the one whose rollout is "
         "closest (Chamfer) to the held-out rest is chosen, then fitted on the whole window. One entry: that family, "
@@ -231,45 +282,100 @@ PIPELINE_NODES: tuple[str, ...] = tuple(node for node in STAGE_CONFIGS if node !
 """The stage nodes in pipeline order (each before the one it feeds): every node but the replay."""
 
 
+def parameters(config_type: type, prefix: str = "") -> list[tuple[str, dataclasses.Field, Any]]:
+    """(name, field, type) of every parameter of a stage config, in order.
+
+    A group's parameters are named with the group's name and a dot (``search.samples``): the
+    nesting is the ROS parameter namespace, and a params file may nest them as mappings.
+    """
+    hints = typing.get_type_hints(config_type)
+    found = []
+    for f in dataclasses.fields(config_type):
+        group = f.metadata.get("group")
+        if group is not None:
+            found += parameters(group, f"{prefix}{f.name}.")
+        else:
+            found.append((prefix + f.name, f, hints[f.name]))
+    return found
+
+
+def value_of(config: Any, name: str) -> Any:
+    """The value of the parameter ``name`` (dotted within groups) of a stage config."""
+    return functools.reduce(getattr, name.split("."), config)
+
+
 def describe(config_type: type) -> list[tuple[str, Any, str]]:
     """(name, default, description) of every parameter of a stage config."""
     defaults = config_type()
-    return [
-        (f.name, getattr(defaults, f.name), f.metadata.get("help", ""))
-        for f in dataclasses.fields(config_type)
-    ]
+    return [(name, value_of(defaults, name), f.metadata.get("help", ""))
+            for name, f, _ in parameters(config_type)]
 
 
 def value_range(config_type: type, name: str) -> tuple[float, float] | None:
     """The closed interval [low, high] a parameter's numbers must lie in, or None."""
-    return next(f.metadata.get("range") for f in dataclasses.fields(config_type) if f.name == name)
+    return next(f.metadata.get("range") for known, f, _ in parameters(config_type) if known == name)
 
 
 def check(config: Any) -> Any:
     """Return a stage config whose numbers all lie in their ranges; else ValueError naming one."""
-    for f in dataclasses.fields(config):
+    for name, f, _ in parameters(type(config)):
         bounds = f.metadata.get("range")
-        value = getattr(config, f.name)
+        value = value_of(config, name)
         if bounds is None:
             continue
         for number in value if isinstance(value, list) else [value]:
             if isinstance(number, bool) or not isinstance(number, int | float):
-                raise ValueError(f"{f.name}: expected a number, got {number!r}")
+                raise ValueError(f"{name}: expected a number, got {number!r}")
             if not bounds[0] <= number <= bounds[1]:  # NaN is outside too
-                raise ValueError(f"{f.name}: {number!r} is out of range [{bounds[0]:g}, {bounds[1]:g}]")
+                raise ValueError(f"{name}: {number!r} is out of range [{bounds[0]:g}, {bounds[1]:g}]")
     return config
+
+
+def flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Values by parameter name from a mapping that may nest groups, as a ROS params file does.
+
+    {"search": {"samples": 8}} gives {"search.samples": 8}.
+    """
+    found = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            found |= flat(value, f"{prefix}{key}.")
+        else:
+            found[prefix + key] = value
+    return found
+
+
+def build(config_type: type, values: dict[str, Any]) -> Any:
+    """A stage config with ``values`` by parameter name, the defaults elsewhere; not checked."""
+    given = {}
+    for f in dataclasses.fields(config_type):
+        group = f.metadata.get("group")
+        if group is not None:
+            given[f.name] = build(group, {name.removeprefix(f"{f.name}."): value for name, value in values.items()
+                                          if name.startswith(f"{f.name}.")})
+        elif f.name in values:
+            given[f.name] = values[f.name]
+    return config_type(**given)
 
 
 def from_mapping(config_type: type, values: dict[str, Any]) -> Any:
     """Build a stage config from a mapping, rejecting unknown keys with their names.
 
+    Groups may nest (``{"search": {"samples": 8}}``) or be dotted (``{"search.samples": 8}``).
     Values outside their ranges are refused (``check``).
     """
-    names = {f.name for f in dataclasses.fields(config_type)}
-    unknown = sorted(set(values) - names)
+    values = flat(values)
+    names = [name for name, _, _ in parameters(config_type)]
+    unknown = sorted(set(values) - set(names))
     if unknown:
         raise ValueError(
             f"{config_type.__name__}: unknown parameter(s) {', '.join(unknown)}; "
             f"known: {', '.join(sorted(names))}"
         )
-    return check(config_type(**values))
+    return check(build(config_type, values))
+
+
+def updated(config: Any, values: dict[str, Any]) -> Any:
+    """A copy of a stage config with ``values`` by parameter name (groups nested or dotted), checked."""
+    current = {name: value_of(config, name) for name, _, _ in parameters(type(config))}
+    return from_mapping(type(config), copy.deepcopy(current) | flat(values))

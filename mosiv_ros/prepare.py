@@ -1,7 +1,8 @@
 """A run's settings, and stages 1-2 of a recording in-process: ``RunConfig``, ``prepare``.
 
-``prepare(bag, config)`` reads a recording, reconstructs every frame set and lifts the first
-complete one (``Prepared``), as reconstruction_node and lifting_node do on topics; ``RunConfig``
+``prepare(bag, config)`` reads a recording, reconstructs every frame set (with its surface
+tracks) and lifts the first complete one (``Prepared``), as reconstruction_node and lifting_node
+do on topics; ``RunConfig``
 holds every stage's settings (the node parameters) and the held-out part of the recording.
 
 What it is for: everything that starts from a recording in-process, kept below the loop
@@ -24,6 +25,7 @@ from mosiv_ros.io.recording import Recording
 from mosiv_ros.lifting.lift import LiftedParticles, lift_first_complete
 from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame, iter_reconstruct
+from mosiv_ros.recon.tracks import SurfaceTracks
 
 _LOG = logging.getLogger(__name__)
 
@@ -46,8 +48,9 @@ class RunConfig:
 class Prepared:
     """Stages 1-2 of a recording.
 
-    The recording, its observed frames from the lifted one on, the lifted particles, and the
-    time they took.
+    The recording, its observed frames from the lifted one on, the lifted particles, the time
+    they took, and the surface tracks over those frames (``tracks.from_frame(0)``: the tracks a
+    loss can attach to the particles).
     """
 
     bag: Path
@@ -55,6 +58,7 @@ class Prepared:
     frames: list[ObservedFrame]
     lifted: LiftedParticles
     timing: dict[str, float]
+    tracks: SurfaceTracks
 
 
 def prepare(bag: str | Path, config: RunConfig,
@@ -79,4 +83,4 @@ def prepare(bag: str | Path, config: RunConfig,
     timing["lift_s"] = time.perf_counter() - tick
     _LOG.info("lifted: %s", lifted.summary())
     frames = [f for f in frames if f.stamp_ns >= lifted.stamp_ns]
-    return Prepared(Path(bag), recording, frames, lifted, timing)
+    return Prepared(Path(bag), recording, frames, lifted, timing, SurfaceTracks.of([f.tracks for f in frames]))

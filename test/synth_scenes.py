@@ -90,8 +90,8 @@ DROP = {
 FAST_PARAMS = {
     "lifting_node": {"ros__parameters": {"particle_spacing": 0.015}},
     "identify_node": {"ros__parameters": {
-        "iterations": 1, "curriculum": [0], "search_rounds": 1, "search_starts": 1,
-        "uncertainty": False, "silhouette_weight": 0.0}},
+        "curriculum": {"horizons": [0], "iterations": 1}, "search": {"rounds": 1, "starts": 1},
+        "uncertainty": False, "loss": {"silhouette_weight": 0.0}}},
     "prediction_node": {"ros__parameters": {"horizon": 0.5}},
 }
 """Node parameters for a fit of a few seconds: the plumbing, not the accuracy, is under test."""

@@ -95,7 +95,9 @@ def test_the_scale_error_is_the_mean_absolute_log10_ratio_of_the_scale_parameter
 def _loop_report(named: list[tuple[str, dict]]) -> dict:
     return {"verdict": "explained" if named else "nothing to explain",
             "accepted": [{"name": n, "values": v} for n, v in named],
-            "before": {"centroid_error": {"held_out": 0.02}}, "after": {"centroid_error": {"held_out": 0.005}}}
+            "before": {"centroid_error": {"held_out": 0.02}}, "after": {"centroid_error": {"held_out": 0.005}},
+            "rounds": [{"control": None}, {"control": {"centroid_error": {"held_out": 0.018}}}],
+            "reconstruction_floor": {"held_out": 0.001}}
 
 
 def test_the_loop_is_judged_against_the_truths_undeclared_effects():
@@ -106,6 +108,7 @@ def test_the_loop_is_judged_against_the_truths_undeclared_effects():
     assert right["expected"] == ["drag"] and right["outcome"] == "right"
     assert right["value_errors"]["drag"]["coefficient[ball]"] == pytest.approx(0.25)
     assert right["held_out_before"] == 0.02 and right["held_out_after"] == 0.005
+    assert right["held_out_control"] == 0.018 and right["held_out_floor"] == 0.001
     assert judge(_loop_report([]), truth)["outcome"] == "missed"
     assert judge(_loop_report([("drag", {}), ("wind", {})]), truth)["outcome"] == "wrong name"
     assert "outcome" not in judge(_loop_report([]), None)
@@ -136,8 +139,9 @@ def tiny_params(tmp_path):
     from synth_scenes import FAST_PARAMS
 
     params = copy.deepcopy(FAST_PARAMS)
-    params["identify_node"]["ros__parameters"].update(search_samples=2, search_frames=3, device="cpu",
-                                                      cpu_workers=1)
+    identify = params["identify_node"]["ros__parameters"]
+    identify["search"].update(samples=2, frames=3)
+    identify.update(device="cpu", cpu_workers=1)
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
     return path

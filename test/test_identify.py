@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from sim_scenes import scene
 
-from mosiv_ros.config import FitConfig, IdentifyConfig
+from mosiv_ros.config import FitConfig, IdentifyConfig, from_mapping, updated
 from mosiv_ros.identify.coordinates import Coordinate
+from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
@@ -104,7 +105,7 @@ def test_coordinates_round_trip_and_keep_values_inside_their_range(spec):
 
 
 def _cube_problem(true_params, guess, free, frames=15, observed_points=None, start=(0.2, 0.3),
-                  velocity=(0.4, 0.0, -0.5), friction_guess=0.3, **settings):
+                  velocity=(0.4, 0.0, -0.5), friction_guess=0.3, **fit):
     """A cube thrown at the ground, observed as (a sample of) its true particles."""
     dx = 0.025
     cube = box((start[0], 0.2, start[1]), (0.05, 0.05, 0.05), dx / 2)
@@ -119,7 +120,8 @@ def _cube_problem(true_params, guess, free, frames=15, observed_points=None, sta
     config = truth.config
     config.ground = Ground(height=0.08, friction=friction_guess)
     problem = FitProblem([ObjectModel("cube", "elastic", guess)], particles, obs, config, free)
-    return problem, FitSettings(**{"curriculum": [6, 0], "iterations": 6, "search_starts": 1, **settings})
+    return problem, updated(FitSettings(), {"curriculum.horizons": [6, 0], "curriculum.iterations": 6,
+                                            "search.starts": 1, **fit})
 
 
 def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
@@ -139,13 +141,13 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
     problem.observations = Observations(obs.frame_dt, obs.points, obs.object_ids, [view], masks)
     losses = {}
     for weight in (0.0, 0.1):
-        identifier = Identifier(problem, FitSettings(silhouette_weight=weight))
+        identifier = Identifier(problem, updated(FitSettings(), {"loss.silhouette_weight": weight}))
         velocity = np.zeros((1, 6))
         velocity[0, :3] = obs.initial_velocities()
-        u = identifier._pack()
-        identifier._apply(u, velocity)
-        whole = identifier._window_loss(0, obs.n_frames - 1, None, grad=False)[0]
-        searched = identifier.batch_losses(u[None], velocity, together=False)[0]
+        u = identifier.pack()
+        identifier.apply(u, velocity)
+        whole = identifier.window_loss(0, obs.n_frames - 1, None, grad=False)[0]
+        searched = identifier.search.batch_losses(u[None], velocity, together=False)[0]
         assert searched == pytest.approx(whole, rel=1e-6)
         losses[weight] = searched
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
@@ -162,21 +164,21 @@ def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
     candidates = np.array([[e.to_u(E), nu.to_u(v)] for E, v in
                            ((5e3, 0.3), (2e4, 0.4), (8e4, 0.2), (3e5, 0.35), (1e4, 0.1))])
     for together in (False, True):
-        expected = serial.batch_object_losses(candidates, velocity, together=together)
-        got = parallel.batch_object_losses(candidates, velocity, together=together)
+        expected = serial.search.batch_object_losses(candidates, velocity, together=together)
+        got = parallel.search.batch_object_losses(candidates, velocity, together=together)
         np.testing.assert_array_equal(got[0], expected[0])
         np.testing.assert_array_equal(got[1], expected[1])
-    assert len({n for n, _ in parallel._batches}) == 3  # single rows, and slices of 3 and 2 rows
+    assert len({n for n, _ in parallel.search.simulators}) == 3  # single rows, and slices of 3 and 2 rows
     with pytest.raises(ValueError, match="cpu_workers must be 0 .every core. or more, got -1"):
         Identifier(problem, FitSettings(cpu_workers=-1))
     # the time step matters: one row alone differs from the same row in the stiffest's batch
-    alone = serial.batch_losses(candidates, velocity, together=False)
+    alone = serial.search.batch_losses(candidates, velocity, together=False)
     assert not np.allclose(alone[:1], expected[0][:1], rtol=1e-9, atol=0)
 
 
-def _jelly_problem(true_params, guess, frames=15, observed_points=None, **settings):
+def _jelly_problem(true_params, guess, frames=15, observed_points=None, **fit):
     """A soft cube dropped so that it squashes and rebounds: E and nu show, friction barely."""
-    return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **settings)
+    return _cube_problem(true_params, guess, ["E", "nu"], frames, observed_points, **fit)
 
 
 @pytest.mark.slow
@@ -197,13 +199,13 @@ def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(
     velocity[0, :3] = problem.observations.initial_velocities()
     ends = {}
     for starts in (1, 3):
-        identifier = Identifier(problem, FitSettings(search_samples=6, search_rounds=1,
-                                                     search_starts=starts))
+        identifier = Identifier(problem, updated(FitSettings(), {
+            "search.samples": 6, "search.rounds": 1, "search.starts": starts}))
         caplog.clear()
-        with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.fit"):
-            u = identifier._search(velocity)
+        with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.search"):
+            u = identifier.search.run(velocity)
         logged = re.findall(r"search start (\d+) of (\d+): loss (\S+): (.*)", caplog.text)
-        loss = identifier.batch_losses(u[None], velocity, together=False)[0]
+        loss = identifier.search.batch_losses(u[None], velocity, together=False)[0]
         ends[starts] = (loss, logged)
     (one_loss, one_logged), (three_loss, three_logged) = ends[1], ends[3]
     assert [(i, n) for i, n, _, _ in three_logged] == [("1", "3"), ("2", "3"), ("3", "3")]
@@ -228,8 +230,8 @@ def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step()
     # a learning rate large enough for Adam to overshoot: measured losses (x1e-6) 337, 94.5,
     # 42.9, 54.4, 84.1, 98.6
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=8,
-                                       search_samples=0, curriculum=[0], iterations=6,
-                                       learning_rate=0.6)
+                                       **{"search.samples": 0, "curriculum.horizons": [0],
+                                          "curriculum.iterations": 6, "curriculum.learning_rate": 0.6})
     result = Identifier(problem, settings).run()
     losses = [h["loss"] for h in result.history]
     best = int(np.argmin(losses))
@@ -243,8 +245,9 @@ def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step()
 def test_a_modulus_stops_at_max_modulus_and_its_estimate_says_it_is_only_a_lower_bound():
     # the true cube (20 kPa) is stiffer than the cap: Adam drives E up to 10 kPa and no further
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3}, ["E"], frames=8,
-                                      search_samples=0, curriculum=[0], iterations=6,
-                                      learning_rate=0.6, max_modulus=1e4)
+                                      max_modulus=1e4, **{"search.samples": 0, "curriculum.horizons": [0],
+                                                          "curriculum.iterations": 6,
+                                                          "curriculum.learning_rate": 0.6})
     identifier = Identifier(problem, settings)
     result = identifier.run()
     assert max(h["values"]["cube.E"] for h in result.history) <= 1e4 * (1 + 1e-12)
@@ -264,9 +267,10 @@ class _Stop(Exception):
 def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninterrupted_one_does(
         tmp_path):
     args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
-    problem, settings = _jelly_problem(*args, frames=8, search_rounds=1, iterations=4,
+    problem, settings = _jelly_problem(*args, frames=8, **{"search.rounds": 1, "curriculum.iterations": 4},
                                        checkpoint_dir=str(tmp_path / "ckpt"))
-    reference = Identifier(*_jelly_problem(*args, frames=8, search_rounds=1, iterations=4)).run()
+    reference = Identifier(*_jelly_problem(*args, frames=8, **{"search.rounds": 1,
+                                                                  "curriculum.iterations": 4})).run()
 
     def stop_after_five(record):
         if record["phase"] != "fit":  # the search's progress
@@ -288,8 +292,8 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
 
 @pytest.mark.slow
 def test_a_truncated_checkpoint_is_reported_and_the_fit_starts_afresh(tmp_path, caplog):
-    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, search_rounds=1,
-                                       iterations=2, checkpoint_dir=str(tmp_path))
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, checkpoint_dir=str(tmp_path),
+                                       **{"search.rounds": 1, "curriculum.iterations": 2})
     Identifier(problem, settings).run()
     path = tmp_path / "identify_checkpoint.npz"
     whole = path.read_bytes()
@@ -303,11 +307,11 @@ def test_a_truncated_checkpoint_is_reported_and_the_fit_starts_afresh(tmp_path, 
 
 @pytest.mark.slow
 def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
-    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
-                                       iterations=2, checkpoint_dir=str(tmp_path))
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, checkpoint_dir=str(tmp_path),
+                                       **{"search.rounds": 1, "curriculum.iterations": 2})
     Identifier(problem, settings).run()
-    other, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, search_rounds=1,
-                                     iterations=2, checkpoint_dir=str(tmp_path))
+    other, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, checkpoint_dir=str(tmp_path),
+                                     **{"search.rounds": 1, "curriculum.iterations": 2})
     result = Identifier(other, settings).run()
     assert len(result.history) == 2 * 2  # two stages of two iterations: started afresh
 
@@ -315,26 +319,28 @@ def test_a_checkpoint_of_another_problem_is_ignored(tmp_path):
 @pytest.mark.slow
 def test_a_checkpoint_of_other_fit_settings_is_ignored(tmp_path):
     # the scene-level ablation with the same checkpoint_dir must not resume the per-object fit
-    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, search_rounds=1,
-                                       iterations=2, checkpoint_dir=str(tmp_path))
+    problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=6, checkpoint_dir=str(tmp_path),
+                                       **{"search.rounds": 1, "curriculum.iterations": 2})
     Identifier(problem, settings).run()
     resumed: list[dict] = []
     Identifier(problem, replace(settings, cpu_workers=1), progress=resumed.append).run()
     assert resumed == []  # the same fit, only on fewer cores: nothing left to iterate
     ablation: list[dict] = []
-    Identifier(problem, replace(settings, per_object_loss=False), progress=ablation.append).run()
+    Identifier(problem, updated(settings, {"loss.per_object": False}), progress=ablation.append).run()
     assert len([r for r in ablation if r["phase"] == "fit"]) == 2 * 2  # two stages of two iterations: afresh
     assert ablation[0]["phase"] == "search"  # afresh, so the search ran again
 
 
 def test_a_fit_takes_every_fit_parameter_of_identify_node_and_has_no_defaults_of_its_own():
-    config = IdentifyConfig(iterations=7, search_starts=2, silhouette_weight=0.0, curriculum=[3, 0],
-                            checkpoint_dir="here", cpu_workers=1)
+    config = from_mapping(IdentifyConfig, {"curriculum": {"iterations": 7, "horizons": [3, 0]},
+                                           "search.starts": 2, "loss.silhouette_weight": 0.0,
+                                           "checkpoint_dir": "here", "cpu_workers": 1})
     settings = FitSettings.of(config)
     assert {f.name: getattr(settings, f.name) for f in fields(FitConfig)} == \
         {f.name: getattr(config, f.name) for f in fields(FitConfig)}
-    settings.curriculum.append(5)
-    assert config.curriculum == [3, 0]  # the fit's settings are its own copy
+    assert settings.curriculum.iterations == 7 and settings.search.starts == 2
+    settings.curriculum.horizons.append(5)
+    assert config.curriculum.horizons == [3, 0]  # the fit's settings are its own copy
     assert FitSettings() == FitSettings.of(IdentifyConfig())  # one home for each default: config
 
 
@@ -376,18 +382,18 @@ def test_boundary_offset_gradient_matches_finite_differences():
     identifier = Identifier(problem, FitSettings(fit_velocity=False))
     i = next(k for k, e in enumerate(identifier.entries) if e.label == f"a.{OFFSET}")
     coordinate = identifier.entries[i].coordinate
-    u = identifier._pack()
+    u = identifier.pack()
     u[i] = coordinate.to_u(-0.001)
     velocity = np.array([[1.0, 0, 0, 0, 0, 0], [-1.0, 0, 0, 0, 0, 0]])
-    identifier._apply(u, velocity)
-    _, du, _, _ = identifier._window_loss(0, 6, None, grad=True)
+    identifier.apply(u, velocity)
+    _, du, _, _ = identifier.window_loss(0, 6, None, grad=True)
     analytic = du[i] / coordinate.dtheta_du(u[i])  # dL/d(offset), per metre
     values = []
     for sign in (1, -1):
         shifted = u.copy()
         shifted[i] = coordinate.to_u(-0.001 + sign * 1e-5)  # 1 % of the shell's volume
-        identifier._apply(shifted, velocity)
-        values.append(identifier._window_loss(0, 6, None, grad=False)[0])
+        identifier.apply(shifted, velocity)
+        values.append(identifier.window_loss(0, 6, None, grad=False)[0])
     numeric = (values[0] - values[1]) / 2e-5
     assert numeric != 0.0
     # measured 6 % apart (the sigmoid's curvature makes steps of 5e-5 m and more drift away)
@@ -412,7 +418,8 @@ def test_fit_recovers_a_density_ratio_from_a_head_on_collision():
     guess = [ObjectModel("a", "elastic", {"E": 1e4, "density": 400.0}), ObjectModel("b", "elastic", {"E": 1e4})]
     problem = FitProblem(guess, particles, obs, truth.config, ["density"],
                          fixed={"a": {"E", "density"}, "b": {"E"}})
-    identifier = Identifier(problem, FitSettings(curriculum=[0], iterations=8, search_samples=0))
+    identifier = Identifier(problem, updated(FitSettings(), {"curriculum.horizons": [0], "curriculum.iterations": 8,
+                                                      "search.samples": 0}))
     assert [e.label for e in identifier.entries] == ["b.density"]
     result = identifier.run()
     assert result.values["density"][1] == pytest.approx(1200.0, rel=0.05)
@@ -452,21 +459,20 @@ def test_only_density_ratios_are_free_the_scale_is_declared_or_the_first_objects
 def test_after_a_divergence_with_no_step_left_to_undo_the_fit_goes_back_to_its_best_point():
     # A point can pass one window and diverge on the next: undoing "the last step" again would
     # leave the fit trying it for the rest of the stage (seen on sand_and_elastic: 12 times).
-    from mosiv_ros.identify.fit import _Adam
-
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2})
     identifier = Identifier(problem, settings)
-    u, velocity = identifier._pack(), np.zeros((1, 6))
-    adam = _Adam(np.full(len(u) + 6, 0.1))
+    u, velocity = identifier.pack(), np.zeros((1, 6))
+    adam = Adam(np.full(len(u) + 6, 0.1))
     step = adam.step(np.ones(len(u) + 6))
-    moved = u + step[:len(u)]
-    back_u, _, what = identifier._retreat(adam, moved, velocity + step[len(u):].reshape(1, 6))
+    state = FitState(u + step[:len(u)], velocity + step[len(u):].reshape(1, 6), adam, (u - 1.0, velocity))
+    back_u, back_velocity, what = identifier.curriculum.retreat(state)
     np.testing.assert_allclose(back_u, u)
+    np.testing.assert_allclose(back_velocity, velocity)
     assert what == "step undone"
-    identifier.start = (u - 1.0, velocity)
-    assert identifier._retreat(adam, back_u, velocity)[2] == "back to the search's point"
-    identifier.best = (1e-3, u + 0.5, velocity + 0.1, np.zeros(1))
-    best_u, best_velocity, what = identifier._retreat(adam, back_u, velocity)
+    state.u, state.velocity = back_u, back_velocity
+    assert identifier.curriculum.retreat(state)[2] == "back to the search's point"
+    state.best = (1e-3, u + 0.5, velocity + 0.1, np.zeros(1))
+    best_u, best_velocity, what = identifier.curriculum.retreat(state)
     np.testing.assert_allclose(best_u, u + 0.5)
     np.testing.assert_allclose(best_velocity, velocity + 0.1)
     assert what == "back to the best whole-window point"
@@ -477,18 +483,19 @@ def test_a_last_adam_step_that_diverges_loses_to_the_points_before_it():
     # recording one diverged there and the whole identification failed
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6)
     identifier = Identifier(problem, settings)
-    u, velocity = identifier._pack(), np.zeros((1, 6))
+    u, velocity = identifier.pack(), np.zeros((1, 6))
     velocity[0, :3] = problem.observations.initial_velocities()
-    identifier.start = (u.copy(), velocity.copy())
     diverging = velocity.copy()
     diverging[0, 0] = 20.0  # thrown at the domain's wall: the cube inverts in the first frame
-    with pytest.raises(SimulationDiverged):  # with no other point to fall back on
-        identifier._final(u, diverging, iterated=False)
-    end_u, end_velocity, loss, _ = identifier._final(u + 0.1, diverging, iterated=True)
+    adam = Adam(np.full(len(u) + 6, 0.1))
+    with pytest.raises(SimulationDiverged):  # no iteration: no other point to fall back on
+        identifier._final(FitState(u, diverging, adam, (u.copy(), velocity.copy())))
+    iterated = FitState(u + 0.1, diverging, adam, (u.copy(), velocity.copy()), history=[{"loss": 1.0}])
+    end_u, end_velocity, loss, _ = identifier._final(iterated)
     np.testing.assert_allclose(end_u, u)
     np.testing.assert_allclose(end_velocity, velocity)
-    identifier._apply(u, velocity)
-    assert loss == identifier._window_loss(0, 6, None, grad=False)[0]
+    identifier.apply(u, velocity)
+    assert loss == identifier.window_loss(0, 6, None, grad=False)[0]
     assert identifier.sim.params.get("E")[0, 0] == pytest.approx(5e3, rel=1e-6)  # applied
 
 
@@ -522,10 +529,10 @@ def test_the_silhouette_loss_renders_the_particles_inside_the_surface_not_the_bo
         particles = Particles(x=x, volume=cube[1], object_index=np.zeros(len(x), dtype=int))
         problem = FitProblem(objects, particles, obs, truth.config, ["E"],
                              boundary=Boundary(sdf, cube[1], 5e3, 1e-4, 0.01))
-        identifier = Identifier(problem, FitSettings(fit_velocity=False, silhouette_weight=1.0,
-                                                     chamfer_weight=0.0))
-        identifier._apply(identifier._pack(), np.zeros((1, 6)))
-        losses.append(identifier._window_loss(0, 4, None, grad=False)[0])
+        identifier = Identifier(problem, updated(FitSettings(fit_velocity=False), {
+            "loss": {"silhouette_weight": 1.0, "chamfer_weight": 0.0}}))
+        identifier.apply(identifier.pack(), np.zeros((1, 6)))
+        losses.append(identifier.window_loss(0, 4, None, grad=False)[0])
     plain, banded = losses
     assert plain > 0.0
     assert banded == pytest.approx(plain, rel=0.02)
@@ -536,7 +543,7 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     # the cube meets no other object: its contact friction cannot change the loss at all
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 2e4, "nu": 0.3},
                                       ["E", "nu", "friction"], frames=8, observed_points=150,
-                                      search_samples=0, iterations=2)
+                                      **{"search.samples": 0, "curriculum.iterations": 2})
     identifier = Identifier(problem, settings)
     result = identifier.run()
     std = coordinate_std(identifier, result)
@@ -546,7 +553,7 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     # the same curvature from single rollouts: sqrt(2 L / (terms * d2L/du2)) along log E
     h = CURVATURE_STEP
     shifted = [result.u + np.array([s * h, 0.0, 0.0]) for s in (0.0, 1.0, -1.0)]
-    base, up, down = identifier.batch_losses(np.array(shifted), result.velocity, together=True)
+    base, up, down = identifier.search.batch_losses(np.array(shifted), result.velocity, together=True)
     assert std[0] == pytest.approx(np.sqrt(2 * base / (8 * (up - 2 * base + down) / h**2)), rel=1e-6)
     cube = estimates_of(identifier, result, std).objects[0]
     assert cube.level == WARN and cube.message.startswith("poorly identified: ")
@@ -558,8 +565,9 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
 @pytest.mark.slow
 def test_a_fit_reports_search_iterations_and_uncertainty_each_up_to_its_total():
     problem, _ = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5)
-    config = IdentifyConfig(curriculum=[2, 0], iterations=2, search_samples=4, search_rounds=1,
-                            search_starts=2, uncertainty=True, device="cpu")
+    config = from_mapping(IdentifyConfig, {"curriculum": {"horizons": [2, 0], "iterations": 2},
+                                           "search": {"samples": 4, "rounds": 1, "starts": 2},
+                                           "uncertainty": True, "device": "cpu"})
     records: list[dict] = []
     fit_problem(problem, config, records.append)
     phases = [r["phase"] for r in records]

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import replace
 
 import numpy as np
 import pytest
 import yaml
 from synth_scenes import record_scene
 
-from mosiv_ros.config import IdentifyConfig, LiftingConfig
+from mosiv_ros.config import IdentifyConfig, LiftingConfig, from_mapping, updated
 from mosiv_ros.identify.estimates import ERROR, Estimates
 from mosiv_ros.identify.family import SCORES_FILE, candidate_families, open_objects, select_families
 from mosiv_ros.identify.fit import FitSettings
@@ -41,9 +40,10 @@ HEAP = {
                 "fps": 30.0},
     "simulation": {"dx": 0.02, "margin": 0.1},
 }
-FIT = IdentifyConfig(curriculum=[0], iterations=6, search_samples=6, search_rounds=0,
-                     uncertainty=False, silhouette_weight=0.0, device="cpu",
-                     families=["elastic", "sand"])
+FIT = from_mapping(IdentifyConfig, {"curriculum": {"horizons": [0], "iterations": 6},
+                                    "search": {"samples": 6, "rounds": 0}, "uncertainty": False,
+                                    "loss.silhouette_weight": 0.0, "device": "cpu",
+                                    "families": ["elastic", "sand"]})
 RUN = RunConfig(lifting=LiftingConfig(particle_spacing=0.015), identify=FIT, render=False)
 
 
@@ -139,7 +139,7 @@ def test_too_short_a_window_to_hold_frames_out_is_reported_as_an_error(heap):
     assert "choosing the family of heap needs at least 5 frames in the fit window" in obj.message
     # one candidate family: no selection, that family, as before there was one
     single = identify_objects(heap.frames[:4], heap.lifted, heap.recording.scene,
-                              replace(FIT, families=["sand"], iterations=1, search_samples=0))
+                              updated(FIT, {"families": ["sand"], "curriculum.iterations": 1, "search.samples": 0}))
     assert single.estimates.objects[0].family == "sand"
     assert single.estimates.objects[0].family_scores == {} and single.families[0].trials == []
 
@@ -150,7 +150,7 @@ class _Stop(Exception):
 
 @pytest.mark.slow
 def test_an_interrupted_selection_resumes_without_refitting_finished_candidates(heap, tmp_path):
-    config = replace(FIT, iterations=3, search_samples=0, checkpoint_dir=str(tmp_path))
+    config = updated(FIT, {"curriculum.iterations": 3, "search.samples": 0, "checkpoint_dir": str(tmp_path)})
     frames = heap.frames[:10]
     seen: list[dict] = []
 
@@ -179,7 +179,7 @@ def test_an_interrupted_selection_resumes_without_refitting_finished_candidates(
 
 @pytest.mark.slow
 def test_a_final_fit_that_fails_after_the_selection_reports_the_chosen_family(heap):
-    config = replace(FIT, iterations=1, search_samples=0)
+    config = updated(FIT, {"curriculum.iterations": 1, "search.samples": 0})
 
     def fail_in_the_final_fit(record: dict) -> None:
         if "candidate" not in record:
@@ -197,7 +197,7 @@ def test_a_final_fit_that_fails_after_the_selection_reports_the_chosen_family(he
 @pytest.mark.slow
 def test_the_loop_closure_fits_every_model_with_the_family_it_chose(heap):
     closure = LoopClosure(heap.frames[:16], heap.lifted, heap.recording.scene,
-                          replace(FIT, iterations=2), LoopConfig(holdout=0.3))
+                          updated(FIT, {"curriculum.iterations": 2}), LoopConfig(holdout=0.3))
     # 16 frames: the loop fits 11; the selection fits 7 of those and holds out 4
     closure.families = closure.choose_families()
     chosen = closure.families[0]

@@ -12,16 +12,16 @@ drag recording also goes through ``mosiv close-loop`` and through the nodes (ide
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import subprocess
 import sys
-from dataclasses import replace
 
 import pytest
 from synth_scenes import record_scene
 
-from mosiv_ros.config import IdentifyConfig, LiftingConfig
+from mosiv_ros.config import IdentifyConfig, LiftingConfig, from_mapping, updated
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig
 from mosiv_ros.loop.observations import Reobserver
@@ -38,8 +38,9 @@ THROW = {
                 "fps": 30.0},
     "simulation": {"dx": 0.03, "margin": 0.1},
 }
-FIT = IdentifyConfig(curriculum=[0], iterations=6, search_samples=12, search_rounds=1,
-                     uncertainty=False, silhouette_weight=0.0, device="cpu")
+FIT = from_mapping(IdentifyConfig, {"curriculum": {"horizons": [0], "iterations": 6},
+                                    "search": {"samples": 12, "rounds": 1}, "uncertainty": False,
+                                    "loss.silhouette_weight": 0.0, "device": "cpu"})
 LIFTING = LiftingConfig(particle_spacing=0.015)
 
 
@@ -123,7 +124,7 @@ def test_undeclared_tilted_floor_is_named_fitted_and_cuts_the_held_out_error(tmp
                     {"type": "floor_friction", "friction": 0.1, "declared": True}],
                    position=[-0.1, 0.0, 0.06], velocity=[0.0, 0.0, 0.0])
     scene["duration"] = 0.4
-    tilt = _close(tmp_path_factory, "tilt", scene, replace(FIT, iterations=15))  # 6 stop at 0.21
+    tilt = _close(tmp_path_factory, "tilt", scene, updated(FIT, {"curriculum.iterations": 15}))  # 6 stop at 0.21
     assert tilt.verdict == EXPLAINED and tilt.after.names == ["floor_tilt"]
     values = tilt.after.effects[0][1]  # the normal is (nx, ny, 1) normalised: truth (0.25, 0)
     assert values["ground.normal[0]"] == pytest.approx(0.25, abs=0.03)
@@ -190,8 +191,8 @@ def _params_file(tmp_path, fast_params):
 
     params = yaml.safe_load(fast_params.read_text())
     params["identify_node"]["ros__parameters"].update(
-        {k: getattr(FIT, k) for k in ("curriculum", "iterations", "search_samples", "search_rounds",
-                                      "search_starts", "device")})
+        {"curriculum": dataclasses.asdict(FIT.curriculum), "search": dataclasses.asdict(FIT.search),
+         "device": FIT.device})
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -211,6 +212,11 @@ def test_mosiv_close_loop_writes_the_report_and_a_rerun_resumes_every_fit(tmp_pa
     assert [e["name"] for e in report["accepted"]] == ["drag"]
     assert report["after"]["metrics"]["future"]["cd"] < report["before"]["metrics"]["future"]["cd"]
     assert report["truth_effects"][0]["type"] == "drag"
+    # the reconstruction's own centroid error (the recorder's particles as the prediction): the
+    # floor under every model's, a voxel's fraction on this recording
+    floor = report["reconstruction_floor"]
+    assert 0 < floor["held_out"] < 0.003 and floor["held_out"] < report["after"]["centroid_error"]["held_out"]
+    assert "the truth (the recorder's particles)" in (out / "close_loop.md").read_text()
     for name in ("close_loop.md", "closed_scene.yaml", "estimates.yaml", "jelly_paths.png",
                  "jelly_residual.png", "ranking.png"):
         assert (out / name).stat().st_size > 100

@@ -11,8 +11,8 @@ from test_nodes_process import LATCHED, Listener
 
 from mosiv_ros.config import LiftingConfig
 from mosiv_ros.graph import Graph, NodeSpec
+from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE
 from mosiv_ros.identify.estimates import ERROR, Estimates
-from mosiv_ros.identify.fit import CHECKPOINT_FILE
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.nodes.common import STREAM_QOS

@@ -14,7 +14,7 @@ import yaml
 from ament_index_python.packages import get_package_prefix, get_package_share_directory
 
 from mosiv_ros.cli import default_parameters_yaml, load_params_file
-from mosiv_ros.config import STAGE_CONFIGS, describe
+from mosiv_ros.config import STAGE_CONFIGS, describe, flat, value_of
 from mosiv_ros.graph import REPLAY_NODE, Graph, NodeExited, NodeSpec, exit_description, graph_nodes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -95,7 +95,8 @@ def test_params_file_equals_the_config_defaults():
     document = yaml.safe_load(default_parameters_yaml())
     assert set(document) == set(NODES)
     for node, config in STAGE_CONFIGS.items():
-        params = document[node]["ros__parameters"]
+        params = flat(document[node]["ros__parameters"])  # groups nest: search: {samples: 32}
+        assert list(params) == [name for name, _, _ in describe(config)]
         for name, default, help_text in describe(config):
             assert params[name] == default and type(params[name]) is type(default)
             assert help_text, f"{node}.{name} has no description"
@@ -105,7 +106,7 @@ def test_a_params_file_value_out_of_its_range_is_refused_naming_the_parameter(tm
     for node, name, value, message in [
         ("prediction_node", "horizon", 1.0e9, "horizon: 1000000000.0 is out of range \\[0, 60\\]"),
         ("prediction_node", "frame_rate", 0.0, "frame_rate: 0.0 is out of range \\[0.1, 1000\\]"),
-        ("identify_node", "curriculum", [5, -1, 0], "curriculum: -1 is out of range"),
+        ("identify_node", "curriculum", {"horizons": [5, -1, 0]}, "curriculum.horizons: -1 is out of range"),
         ("lifting_node", "particle_spacing", float("nan"), "particle_spacing: nan is out of range"),
         ("reconstruction_node", "voxel_size", "fine", "voxel_size: expected a number, got 'fine'"),
     ]:
@@ -120,10 +121,10 @@ def test_every_shipped_params_file_names_known_nodes_and_parameters_of_their_typ
     configs = load_params_file(path)  # unknown nodes or parameters are refused
     document = yaml.safe_load(path.read_text())
     for node, section in document.items():
-        for name, value in section["ros__parameters"].items():
-            default = getattr(STAGE_CONFIGS[node](), name)
+        for name, value in flat(section["ros__parameters"]).items():
+            default = value_of(STAGE_CONFIGS[node](), name)
             assert type(value) is type(default), (node, name, value)
-            assert getattr(configs[node], name) == value
+            assert value_of(configs[node], name) == value
 
 
 def test_the_graph_gives_every_node_parameters_it_has_and_starts_every_node_once():

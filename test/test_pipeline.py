@@ -15,7 +15,7 @@ from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import PointCloud2
 from test_nodes_process import LATCHED, Listener
 
-from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.config import IdentifyConfig, from_mapping
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE, parameter_errors
 from mosiv_ros.graph import Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
@@ -191,7 +191,7 @@ def test_a_fit_that_cannot_run_is_reported_as_error_estimates_not_raised(drop_ba
     prepared = prepare(drop_bag, config)
     frames = [prepared.frames[i] for i in (0, 1, 7, 8)]  # 5 of 9 frames lost: too few remain
     identification = identify_objects(frames, prepared.lifted, prepared.recording.scene,
-                                      IdentifyConfig(iterations=1, uncertainty=False))
+                                      from_mapping(IdentifyConfig, {"curriculum.iterations": 1, "uncertainty": False}))
     assert identification.result is None
     obj = identification.estimates.objects[0]
     assert obj.level == ERROR and "too few frames remain: 4 of the 9 frames" in obj.message
@@ -214,7 +214,8 @@ def test_frames_a_stream_lost_are_gaps_of_whole_frame_times():
 def test_a_frame_set_the_stream_lost_is_a_gap_the_fit_simulates_through(drop_bag, caplog):
     prepared = prepare(drop_bag, RunConfig())
     frames = [prepared.frames[i] for i in (0, 1, 2, 4, 5)]  # frame 3 lost: the fit failed outright
-    config = IdentifyConfig(curriculum=[0], iterations=2, search_samples=0, uncertainty=False)
+    config = from_mapping(IdentifyConfig, {"curriculum": {"horizons": [0], "iterations": 2},
+                                           "search.samples": 0, "uncertainty": False})
     identification = identify_objects(frames, prepared.lifted, prepared.recording.scene, config)
     assert identification.result is not None, identification.estimates.objects[0].message
     assert identification.estimates.objects[0].level != ERROR

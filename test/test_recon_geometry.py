@@ -10,8 +10,9 @@ from recon_scenes import ball_points, sphere_recording, time_of, touching_pair
 
 from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rosbags_types
-from mosiv_ros.recon import VOXEL_FIELD, reconstruct_recording
+from mosiv_ros.recon import COLOUR_FIELD, VOXEL_FIELD, reconstruct_recording
 from mosiv_ros.recon.evaluation import chamfer_figure
+from mosiv_ros.recon.reconstruct import unpack_rgb
 from mosiv_ros.synth.shapes import GRAVITY, Sphere, ring_camera_pose, shapes_spheres
 
 VOXEL = 0.005
@@ -97,7 +98,7 @@ def test_observed_cloud_lists_objects_apart_and_round_trips_through_pointcloud2(
     cloud = frame.to_cloud()
     msg = pointcloud_to_msg(rosbags_types(), cloud.xyz, cloud.object_id, cloud.stamp_ns,
                             "world", cloud.fields)
-    assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", VOXEL_FIELD]
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", VOXEL_FIELD, COLOUR_FIELD]
     back = pointcloud_from_msg(msg)
     np.testing.assert_array_equal(back.xyz, cloud.xyz)
     np.testing.assert_array_equal(back.object_id, cloud.object_id)
@@ -106,6 +107,8 @@ def test_observed_cloud_lists_objects_apart_and_round_trips_through_pointcloud2(
         voxels = mine & (back.fields[VOXEL_FIELD] > 0)
         assert voxels.sum() == len(geometry.occupancy) and (mine & ~voxels).sum() == len(geometry.surface)
         np.testing.assert_allclose(back.fields[VOXEL_FIELD][voxels], VOXEL, rtol=1e-6)
+        assert np.all(back.fields[COLOUR_FIELD][voxels] == 0)
+        np.testing.assert_array_equal(unpack_rgb(back.fields[COLOUR_FIELD][mine & ~voxels]), geometry.colour)
     assert set(np.unique(back.object_id).tolist()) == {1, 2, 3}
     assert back.stamp_ns == frame.stamp_ns
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from recon_scenes import sphere_recording, touching_pair
-from sensor_msgs.msg import PointCloud2
+from sensor_msgs.msg import PointCloud2, PointField
 from test_nodes_process import Listener
 
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
@@ -16,7 +16,7 @@ from mosiv_ros.io.bag import read_recording, write_recording
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.lifting import lift, lift_first_complete
 from mosiv_ros.nodes.common import STREAM_QOS, lifted_from_msg
-from mosiv_ros.recon import reconstruct_recording
+from mosiv_ros.recon import COLOUR_FIELD, TrackPoints, reconstruct_recording
 
 STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -38,6 +38,7 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
     bag = write_recording(sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72),
                           tmp_path / "touching")
     listener.subscribe(PointCloud2, "/mosiv/observed_objects", STREAM)
+    listener.subscribe(PointCloud2, "/mosiv/surface_tracks", STREAM)
     listener.subscribe(PointCloud2, "/mosiv/particles", LATCHED)
     stages = [NodeSpec("reconstruction_node", {"scene": str(bag), **RECON}),
               NodeSpec("lifting_node", {"scene": str(bag), **LIFT})]
@@ -49,6 +50,7 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
         with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
             assert replay.nodes["bag_replay_node"].process.wait(60) == 0
         received = listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == FRAMES
+                                     and len(listener.received["/mosiv/surface_tracks"]) == FRAMES
                                      and listener.received["/mosiv/particles"], 30)
         lines = graph.nodes["reconstruction_node"].lines + graph.nodes["lifting_node"].lines
     assert received, "\n".join(lines[-30:])
@@ -63,6 +65,18 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
         np.testing.assert_array_equal(got.object_id, want.object_id)
         np.testing.assert_array_equal(got.xyz, want.xyz)
         np.testing.assert_array_equal(got.fields["voxel_size"], want.fields["voxel_size"])
+        np.testing.assert_array_equal(got.fields[COLOUR_FIELD], want.fields[COLOUR_FIELD])
+    # The surface tracks: the same points, ids and confidences, their field types as the contract says.
+    for msg, frame in zip(listener.received["/mosiv/surface_tracks"], frames, strict=True):
+        got, want = TrackPoints.from_cloud(pointcloud_from_msg(msg)), frame.tracks
+        assert {f.name: f.datatype for f in msg.fields} == {
+            "x": PointField.FLOAT32, "y": PointField.FLOAT32, "z": PointField.FLOAT32,
+            "object_id": PointField.UINT16, "track_id": PointField.UINT32, "confidence": PointField.FLOAT32}
+        assert msg.header.frame_id == "world" and got.stamp_ns == want.stamp_ns
+        np.testing.assert_array_equal(got.xyz, want.xyz.astype(np.float32))
+        for name in ("object_id", "track_id", "confidence"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name).astype(getattr(got, name).dtype))
+    assert sum(len(f.tracks.track_id) for f in frames) > 0
     lifted = lift_first_complete(frames, LiftingConfig(**LIFT), recording.scene)
     got, want = pointcloud_from_msg(listener.received["/mosiv/particles"][-1]), lifted.to_cloud()
     assert got.stamp_ns == want.stamp_ns == frames[0].stamp_ns

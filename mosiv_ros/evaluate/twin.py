@@ -4,9 +4,9 @@ For every frame of the recording (the twin's frames are the observation frames),
 
 - 3D: CD and EMD between the twin's particles and the reconstructed occupancy, and, for a
   synthetic recording, between the twin's particles and the ground-truth particles;
-- 2D: the twin re-rendered with the synthetic recorder's renderer (objects coloured with their
-  mean observed colour in the first frame) against each camera's image: silhouette IoU per
-  object, PSNR and SSIM per view.
+- 2D: the twin re-rendered with the synthetic recorder's renderer (each particle in the colour
+  lifting gave it: the colour under it in the lifted frame) against each camera's image:
+  silhouette IoU per object, PSNR and SSIM per view.
 
 Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
 compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
@@ -64,9 +64,14 @@ class FrameScores:
 def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], recording: Recording,
                  fitted_frames: int, spacing: float, truth=None, render: bool = True
                  ) -> list[FrameScores]:
-    """Scores of every observed frame that the prediction covers."""
+    """Scores of every observed frame that the prediction covers.
+
+    ValueError if asked to ``render`` a prediction whose particles have no colour.
+    """
+    if render and prediction.rgb is None:
+        raise ValueError("cannot re-render the twin: its particles have no colour (lifted from a "
+                         "cloud without the 'rgb' field)")
     images = _images_by_stamp(recording)
-    colours = _colours(frames[0], recording, prediction.object_ids) if render else {}
     floor = Floor(*recording.scene.ground.plane()) if recording.scene.ground is not None else None
     scores = []
     for f, frame in enumerate(frames):
@@ -84,7 +89,7 @@ def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], record
             if truth is not None and f < len(truth.positions):
                 s.cd_truth[object_id] = chamfer_distance(mine, truth.of_object(object_id)[f])
         if render and frame.stamp_ns in images:
-            _score_views(s, x, prediction, colours, images[frame.stamp_ns], recording, spacing, floor)
+            _score_views(s, x, prediction, images[frame.stamp_ns], recording, spacing, floor)
         scores.append(s)
     return scores
 
@@ -183,25 +188,12 @@ def _images_by_stamp(recording: Recording) -> dict[int, dict]:
     return {s.stamp_ns: s.frames for s in sets}
 
 
-def _colours(frame: ObservedFrame, recording: Recording, ids: Sequence[int]) -> dict[int, np.ndarray]:
-    """Mean observed colour of each object in the first frame, over all cameras."""
-    sets = _images_by_stamp(recording)
-    images = sets.get(frame.stamp_ns, {})
-    colours = {}
-    for object_id in ids:
-        pixels = [img.rgb[img.mask == object_id] for img in images.values()]
-        pixels = [p for p in pixels if len(p)]
-        colours[object_id] = (np.concatenate(pixels).mean(axis=0) if pixels
-                              else np.array([128.0, 128.0, 128.0]))
-    return colours
-
-
-def _score_views(s: FrameScores, x: np.ndarray, prediction: Prediction, colours: dict,
-                 images: dict, recording: Recording, spacing: float, floor) -> None:
+def _score_views(s: FrameScores, x: np.ndarray, prediction: Prediction, images: dict,
+                 recording: Recording, spacing: float, floor) -> None:
     labels = np.asarray(prediction.object_ids)[prediction.object_index]
     normals = surface_normals(x, prediction.object_index, spacing)
-    albedo = np.stack([colours[i] for i in labels]) if len(labels) else np.zeros((0, 3))
-    splats = Splats(x, labels.astype(np.uint16), albedo, normals, SPLAT_RADIUS * spacing)
+    splats = Splats(x, labels.astype(np.uint16), prediction.rgb.astype(np.float64), normals,
+                    SPLAT_RADIUS * spacing)
     per_object: dict[int, list[float]] = {}
     for name, image in images.items():
         camera = recording.cameras[name]

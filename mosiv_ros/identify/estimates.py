@@ -250,7 +250,7 @@ def coordinate_std(identifier: Identifier, result: FitResult,
             candidates.append(shifted)
     # one batch, one time step, on every device: the shifts are too small to change the stable
     # step much, and a loss differs by up to 10 % between time steps, more than a shift changes it
-    losses = identifier.batch_losses(np.array(candidates), result.velocity, frames, together=True)
+    losses = identifier.search.batch_losses(np.array(candidates), result.velocity, frames, together=True)
     base = losses[0]
     obs = identifier.problem.observations
     last = min(frames or obs.n_frames - 1, obs.n_frames - 1)

@@ -85,7 +85,7 @@ def problem_options(config: IdentifyConfig, views: Sequence[View]) -> ProblemOpt
     candidate family unless ``ProblemOptions.families`` says otherwise.
     """
     return ProblemOptions(default_family=candidate_families(config.families)[0],
-                          use_masks=config.silhouette_weight > 0 and bool(views),
+                          use_masks=config.loss.silhouette_weight > 0 and bool(views),
                           fit_density=config.density_ratios)
 
 

@@ -53,6 +53,8 @@ INTEGER_CLOUD_FIELDS: dict[str, np.dtype] = {
     "object_id": np.dtype(np.uint16),
     "material": np.dtype(np.uint8),
     "segment": np.dtype(np.uint16),
+    "rgb": np.dtype(np.uint32),
+    "track_id": np.dtype(np.uint32),
 }
 """PointCloud2 fields written as unsigned integers."""
 FLOAT64_CLOUD_FIELDS = ("boundary_beta", "boundary_eps")
@@ -312,7 +314,8 @@ def pointcloud_to_msg(
     """sensor_msgs/PointCloud2 (height 1, little-endian) of N points.
 
     Fields: x, y, z float32; object_id uint16; then each entry of ``fields`` as float32, except
-    the integer fields of ``INTEGER_CLOUD_FIELDS`` (``material`` uint8, ``segment`` uint16) and
+    the integer fields of ``INTEGER_CLOUD_FIELDS`` (``material`` uint8, ``segment`` uint16, ``rgb``
+    and ``track_id`` uint32) and
     the float64 ones of ``FLOAT64_CLOUD_FIELDS``, in the given order, each aligned to its size.
     """
     xyz = np.asarray(xyz)

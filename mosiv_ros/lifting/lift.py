@@ -20,7 +20,10 @@ multi-object lifting with M-PhyGs boundary handling:
    outermost inside cell at -h/2); nothing is kept below a declared ground plane;
 5. every particle carries V_i = V_g (sigmoid(-beta (d_i + o_s)) + eps) (M-PhyGs supplement,
    Eq. 1), V_g = h^3, with a boundary offset o_s per segment (here: per object, zero until the
-   identifier optimises it), its object id, segment and material family.
+   identifier optimises it), its object id, segment and material family;
+6. when the cloud has the surface points' colours (``mosiv_ros.recon.COLOUR_FIELD``), every
+   particle takes the colour of its object's nearest surface point: the colour under it in the
+   lifted frame, with which the twin is re-rendered.
 
 What it is not for: reconstruction (``mosiv_ros.recon``) or the simulator itself
 (``simulation`` converts to ``mosiv_ros.sim.Particles``).
@@ -35,13 +38,14 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mosiv_ros.config import LiftingConfig
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene
 from mosiv_ros.lifting.consensus import consensus
 from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance, voxel_surface_distance
-from mosiv_ros.recon.reconstruct import VOXEL_FIELD, ObservedFrame, ground_plane
+from mosiv_ros.recon.reconstruct import COLOUR_FIELD, VOXEL_FIELD, ObservedFrame, ground_plane, pack_rgb, unpack_rgb
 
 _LOG = logging.getLogger(__name__)
 
@@ -80,6 +84,8 @@ class LiftedParticles:
     families: dict[int, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    rgb: np.ndarray | None = None
+    """(N, 3) uint8 colour of each particle (None: the observed cloud carried no colours)."""
 
     @property
     def object_ids(self) -> list[int]:
@@ -116,9 +122,10 @@ class LiftedParticles:
         """The ``/mosiv/particles`` cloud (DESIGN.md).
 
         Fields volume, material, sdf, segment, and lattice_volume, boundary_beta, boundary_eps
-        (one value each, repeated on every point).
+        (one value each, repeated on every point); ``rgb`` when the particles have colours.
         """
         n = len(self.x)
+        colour = {} if self.rgb is None else {COLOUR_FIELD: pack_rgb(self.rgb)}
         return PointCloud(self.x, self.object_id, {
             "volume": self.volumes().astype(np.float32),
             "material": self.material,
@@ -127,6 +134,7 @@ class LiftedParticles:
             "segment": self.segment,
             "boundary_beta": np.full(n, self.beta),
             "boundary_eps": np.full(n, self.eps),
+            **colour,
         }, stamp_ns=self.stamp_ns)
 
     @classmethod
@@ -142,9 +150,10 @@ class LiftedParticles:
         if not len(cloud.xyz):
             raise ValueError(f"particle cloud of stamp {cloud.stamp_ns} ns is empty: no particle to simulate")
         lattice_volume, beta, eps = (_one_value(cloud, name) for name in _ONE_VALUE_FIELDS)
+        rgb = unpack_rgb(cloud.fields[COLOUR_FIELD]) if COLOUR_FIELD in cloud.fields else None
         return cls(cloud.xyz.astype(np.float64), cloud.object_id, cloud.fields["segment"].astype(np.uint16),
                    cloud.fields["material"].astype(np.uint8), cloud.fields["sdf"].astype(np.float64),
-                   lattice_volume, beta, eps, cloud.stamp_ns)
+                   lattice_volume, beta, eps, cloud.stamp_ns, rgb=rgb)
 
 
 _ONE_VALUE_FIELDS = ("lattice_volume", "boundary_beta", "boundary_eps")
@@ -226,8 +235,25 @@ def lift(cloud: PointCloud, config: LiftingConfig, scene: Scene | None = None,
         sdf.append(final[keep])
         object_id.append(np.full(int(keep.sum()), object_id_k, np.uint16))
     lifted = _assemble(x, object_id, sdf, config, scene, cloud.stamp_ns, warnings)
+    lifted.rgb = _colours(cloud, lifted)
     lifted.seconds = time.perf_counter() - start
     return lifted
+
+
+def _colours(cloud: PointCloud, lifted: LiftedParticles) -> np.ndarray | None:
+    """Each particle's colour: its object's nearest coloured surface point's (None: no colours)."""
+    if COLOUR_FIELD not in cloud.fields:
+        return None
+    surface = np.asarray(cloud.fields[VOXEL_FIELD]) == 0
+    rgb = np.zeros((len(lifted.x), 3), np.uint8)
+    for object_id in lifted.object_ids:
+        points = surface & (cloud.object_id == object_id)
+        mine = lifted.object_id == object_id
+        if not points.any():
+            return None
+        nearest = cKDTree(cloud.xyz[points]).query(lifted.x[mine])[1]
+        rgb[mine] = unpack_rgb(cloud.fields[COLOUR_FIELD][points][nearest])
+    return rgb
 
 
 def missing_objects(cloud: PointCloud, scene: Scene | None) -> list[int]:

@@ -375,7 +375,8 @@ class LoopClosure:
         positions = identifier.sim.rollout(n)[:, 0].astype(np.float64)
         objects = identifier.problem.objects
         return Prediction(frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
-                          identifier.index, [o.id for o in objects], [o.name for o in objects])
+                          identifier.index, [o.id for o in objects], [o.name for o in objects],
+                          observations.lifted.rgb)
 
     def probe(self, model: Model, scene: Scene, ctx: Context) -> Prediction:
         """``model`` with ``scene``'s declaration instead of its own, rolled out unfitted."""

@@ -4,7 +4,8 @@ The truth's undeclared effects are what the loop should name: a library effect b
 tilted gravity by ``wind``, which stands for it), an effect outside the library
 (``periodic_field``) by nothing, and mask noise is not an effect to name. ``judge`` sums a
 ``close_loop`` report up against the truth: the verdict, what was named with each fitted
-value's error against the truth, the held-out centroid error before and after, and the
+value's error against the truth, the held-out centroid error before and after (and that of the
+first round's control and of the reconstruction itself, the floor), and the
 outcome: 'right', 'missed' (a present effect not named) or 'wrong name' (one named that is not
 there, the worst).
 
@@ -78,6 +79,9 @@ def judge(report: dict, truth: dict | None) -> dict:
         "values": {e["name"]: e["values"] for e in report["accepted"]},
         "held_out_before": report["before"]["centroid_error"]["held_out"],
         "held_out_after": report["after"]["centroid_error"]["held_out"],
+        "held_out_control": next((r["control"]["centroid_error"]["held_out"] for r in report["rounds"]
+                                  if r.get("control")), None),
+        "held_out_floor": (report.get("reconstruction_floor") or {}).get("held_out"),
         "free_flight": report.get("free_flight"),
     }
     if truth is not None:

@@ -5,12 +5,10 @@ Not for algorithms: a node hands each message to the ROS-free core and publishes
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import signal
 import sys
 import threading
-import typing
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -35,7 +33,7 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 
-from mosiv_ros.config import check, describe, value_range
+from mosiv_ros.config import build, check, describe, parameters, value_of
 from mosiv_ros.io.errors import MosivIOError
 from mosiv_ros.io.messages import pointcloud_from_msg
 from mosiv_ros.lifting.lift import LiftedParticles
@@ -73,19 +71,21 @@ _PARAMETER_TYPES = {
 
 def declare_config(node: Node, config_type: type,
                    check_change: Callable[[Any, dict[str, Any]], None] | None = None) -> Any:
-    """Declare one parameter per field of a stage config and return the config they give.
+    """Declare one parameter per parameter of a stage config and return the config they give.
 
-    Each parameter is declared with its range (``config.value_range``); a value outside it stops
-    the node (ValueError). At run time a change is refused, with the reason, unless every changed
-    parameter is one the config marks ``run_time``, the config it gives passes ``config.check``
-    and ``check_change(new config, changed values)`` (the node's own checks) raises no ValueError.
+    A group's parameters are declared with dotted names (``search.samples``), which a params
+    file may nest. Each parameter is declared with its range (``config.value_range``); a value
+    outside it stops the node (ValueError). At run time a change is refused, with the reason,
+    unless every changed parameter is one the config marks ``run_time``, the config it gives
+    passes ``config.check`` and ``check_change(new config, changed values)`` (the node's own
+    checks) raises no ValueError.
     """
-    hints = typing.get_type_hints(config_type)
-    values = {}
-    for name, default, help_text in describe(config_type):
-        kind = _PARAMETER_TYPES[hints[name]]
-        descriptor = ParameterDescriptor(description=help_text, type=kind.value)
-        bounds = value_range(config_type, name)
+    values, defaults = {}, config_type()
+    for name, f, hint in parameters(config_type):
+        default = value_of(defaults, name)
+        kind = _PARAMETER_TYPES[hint]
+        descriptor = ParameterDescriptor(description=f.metadata.get("help", ""), type=kind.value)
+        bounds = f.metadata.get("range")
         if bounds is not None and kind == Parameter.Type.INTEGER:
             descriptor.integer_range = [IntegerRange(from_value=bounds[0], to_value=bounds[1])]
         elif bounds is not None and kind == Parameter.Type.DOUBLE:
@@ -97,7 +97,7 @@ def declare_config(node: Node, config_type: type,
         except InvalidParameterValueException as error:  # out of its range
             raise ValueError(str(error)) from None
         values[name] = default if value is None else value
-    config = check(config_type(**values))
+    config = check(build(config_type, values))
     node.add_on_set_parameters_callback(partial(_on_set, node, config_type, check_change))
     return config
 
@@ -105,15 +105,15 @@ def declare_config(node: Node, config_type: type,
 def _on_set(node: Node, config_type: type, check_change: Callable[[Any, dict[str, Any]], None] | None,
             params: list[Parameter]) -> SetParametersResult:
     """``declare_config``'s check of a run-time parameter change."""
-    fields = {f.name: f for f in dataclasses.fields(config_type)}
+    fields = {name: f for name, f, _ in parameters(config_type)}
     changed = {p.name: p.value for p in params if p.name in fields}  # rclpy's own (use_sim_time) pass
     fixed = sorted(name for name in changed if not fields[name].metadata.get("run_time"))
     if fixed:
         return SetParametersResult(successful=False, reason=f"{', '.join(fixed)}: read at start only")
     current = {name: node.get_parameter(name).value for name in fields}
     try:
-        config = check(config_type(**{name: default if current[name] is None else current[name]
-                                      for name, default, _ in describe(config_type)} | changed))
+        config = check(build(config_type, {name: default if current[name] is None else current[name]
+                                           for name, default, _ in describe(config_type)} | changed))
         if check_change is not None:
             check_change(config, changed)
     except ValueError as error:

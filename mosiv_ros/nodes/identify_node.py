@@ -91,7 +91,7 @@ class IdentifyNode(Node):
             PointCloud2, "/mosiv/particles",
             guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
         self.create_timer(0.5, self._maybe_start)
-        if self.config.silhouette_weight > 0:
+        if self.config.loss.silhouette_weight > 0:
             self.get_logger().info("the topic graph carries no silhouettes: fitting the 3D loss")
 
     def _on_observed(self, frame: ObservedFrame) -> None:

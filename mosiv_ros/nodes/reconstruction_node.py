@@ -4,8 +4,11 @@ Subscribes to every camera's color image, instance mask, optional depth and Came
 sensor-data QoS) and to ``/tf_static``; assembles each camera's frames and groups the cameras'
 frames by stamp with the core's matcher. Each frame set goes to the core's ``Reconstructor``;
 the result is published on ``/mosiv/observed_objects``: a PointCloud2 in ``world`` with fields
-x, y, z (float32), object_id (uint16) and voxel_size (float32: the edge of the voxel a point is
-the centre of, 0 for a surface point), one message per frame set stamped with the set's stamp.
+x, y, z (float32), object_id (uint16), voxel_size (float32: the edge of the voxel a point is
+the centre of, 0 for a surface point) and rgb (uint32 0x00RRGGBB, a surface point's colour), one
+message per frame set stamped with the set's stamp. The surface tracks alive at each set go on
+``/mosiv/surface_tracks`` (x, y, z, object_id, track_id uint32, confidence float32), one cloud per
+set with the same stamp; one tracker follows them across the whole stream.
 
 A frame set still lacking some cameras is reconstructed from the others (with a warning) once a
 later set completes or ``partial_set_timeout`` has passed, so a camera that stops publishing
@@ -41,10 +44,11 @@ from mosiv_ros.io.scene import Scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, declare_config, guarded, main_for
-from mosiv_ros.recon import Reconstructor
+from mosiv_ros.recon import Reconstructor, SurfaceTracker
 
 NAME = "reconstruction_node"
 SUMMARY = "group multi-camera frames by stamp and reconstruct each object's geometry per frame"
+TRACKS_TOPIC = "/mosiv/surface_tracks"
 IMAGE_TOPICS = {"rgb": "color/image_raw", "mask": "instance_mask", "depth": "depth/image_rect"}
 MAX_UNCALIBRATED = 30
 """Frame sets kept while waiting for calibration; older ones are dropped with a warning."""
@@ -63,6 +67,8 @@ class ReconstructionNode(Node):
         self.scene: Scene | None = load_scene(self.config.scene) if self.config.scene else None
         self.types = rclpy_types()
         self.observed_pub = self.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
+        self.tracks_pub = self.create_publisher(PointCloud2, TRACKS_TOPIC, STREAM_QOS)
+        self.tracker = SurfaceTracker(self.config.tracks)
         self.assemblers: dict[str, CameraFrameAssembler] = {}
         self.transforms = StaticTransforms()
         self.matcher: FrameMatcher | None = None
@@ -223,9 +229,10 @@ class ReconstructionNode(Node):
             return
         for message in observed.warnings:
             self.get_logger().warning(message)
-        cloud = observed.to_cloud()
-        self.observed_pub.publish(pointcloud_to_msg(
-            self.types, cloud.xyz, cloud.object_id, cloud.stamp_ns, WORLD_FRAME, cloud.fields))
+        for publisher, cloud in ((self.observed_pub, observed.to_cloud()),
+                                 (self.tracks_pub, observed.tracks.to_cloud())):
+            publisher.publish(pointcloud_to_msg(
+                self.types, cloud.xyz, cloud.object_id, cloud.stamp_ns, WORLD_FRAME, cloud.fields))
         self.published += 1
         self.seconds += observed.seconds
         self.get_logger().info(
@@ -249,7 +256,7 @@ class ReconstructionNode(Node):
             pose = self.transforms.to_world(f"{name}_optical")
             if intrinsics is not None and pose is not None:
                 cameras[name] = Camera(name, intrinsics, pose)
-        self.reconstructor = Reconstructor(cameras, self.config, self.scene)
+        self.reconstructor = Reconstructor(cameras, self.config, self.scene, self.tracker)
         lattice = self.reconstructor.lattice
         self.get_logger().info(
             f"reconstructing with cameras {', '.join(cameras)} on a {lattice.voxel_size * 1e3:.1f} mm "

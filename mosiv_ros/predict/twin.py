@@ -48,6 +48,8 @@ class Prediction:
     object_index: np.ndarray
     object_ids: list[int]
     names: list[str]
+    rgb: np.ndarray | None = None
+    """(N, 3) uint8: each particle's lifted colour, for re-rendering (None: not known)."""
 
     def centroids(self) -> np.ndarray:
         """(F, K, 3) centroid of each object per predicted frame."""
@@ -64,7 +66,7 @@ class Prediction:
             step = max(1, int(round(1.0 / (frame_rate * (self.times[1] - self.times[0])))))
             keep = keep[::step]
         return Prediction(self.start_ns, self.times[keep], self.positions[keep],
-                          self.object_index, self.object_ids, self.names)
+                          self.object_index, self.object_ids, self.names, self.rgb)
 
     def stamps_ns(self) -> list[int]:
         """Absolute stamp of every frame."""
@@ -113,6 +115,7 @@ class Twin:
             if not solid[mine].any():
                 solid[mine] = True
         self.solid = solid
+        self.rgb = lifted.rgb[solid] if lifted.rgb is not None else None
         self.velocity = np.array([by_id[i].velocity for i in ids], dtype=np.float64)
 
     @property
@@ -166,4 +169,4 @@ class Twin:
         positions = self.sim.rollout(n_frames, progress=progress)[:, 0, self.solid]
         return Prediction(self.estimates.stamp_ns, np.arange(n_frames + 1) * self.config.frame_dt,
                           positions.astype(np.float64), index[self.solid], list(self.ids),
-                          [o.name for o in self.objects])
+                          [o.name for o in self.objects], self.rgb)

@@ -3,10 +3,12 @@
 ``Reconstructor`` / ``reconstruct_recording`` (``reconstruct``) give one ``ObservedFrame`` per
 frame set: per object, occupied voxel centres and surface points, and the per-view silhouettes.
 ``carving`` holds the occlusion-aware carving rules, ``views`` the per-camera image queries,
-``evaluation`` the Chamfer figures against ground truth. No ROS here.
+``tracks`` the surface tracks (optical flow, lifted to 3D), ``evaluation`` the Chamfer figures
+and track errors against ground truth. No ROS here.
 """
 
 from mosiv_ros.recon.reconstruct import (
+    COLOUR_FIELD,
     VOXEL_FIELD,
     ObjectGeometry,
     ObservedFrame,
@@ -14,6 +16,7 @@ from mosiv_ros.recon.reconstruct import (
     iter_reconstruct,
     reconstruct_recording,
 )
+from mosiv_ros.recon.tracks import SurfaceTracker, SurfaceTracks, TrackPoints
 
-__all__ = ["VOXEL_FIELD", "ObjectGeometry", "ObservedFrame", "Reconstructor", "iter_reconstruct",
-           "reconstruct_recording"]
+__all__ = ["COLOUR_FIELD", "VOXEL_FIELD", "ObjectGeometry", "ObservedFrame", "Reconstructor",
+           "SurfaceTracker", "SurfaceTracks", "TrackPoints", "iter_reconstruct", "reconstruct_recording"]

@@ -13,7 +13,10 @@ both keep (they hide each other, or the masks cannot tell them apart) goes to th
 views show there, ties to the object whose own evidence is nearer (its uncontested voxels and
 depth returns). Surface points are the
 object's depth returns that agree with its volume when the recording has depth, otherwise the
-centres of its boundary voxels.
+centres of its boundary voxels. Each surface point has a colour: its pixel's, for a depth return;
+for a boundary voxel, the mean colour of the pixels whose rays first enter the object's voxels in
+it (the nearest such voxel's where no ray does). With a ``SurfaceTracker`` the frame also carries
+the object's surface tracks (``tracks``).
 
 Problems that degrade a frame (a camera missing from the set, an object no camera sees, an object
 cut by an image border, an object left with no voxel) never raise: they are listed in
@@ -35,12 +38,27 @@ from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.recording import Camera, FrameSet, PointCloud, Recording, match_frames
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.recon.carving import Lattice, carve_object
+from mosiv_ros.recon.tracks import SurfaceTracker, TrackPoints
 from mosiv_ros.recon.views import View, look_at_box
 
 _LOG = logging.getLogger(__name__)
 
 VOXEL_FIELD = "voxel_size"
 """Cloud field: edge (m) of the voxel a point is the centre of; 0 for a surface point."""
+COLOUR_FIELD = "rgb"
+"""Cloud field (uint32, 0x00RRGGBB, as rviz reads ``rgb``): the colour seen at a surface point."""
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """(N,) uint32 0x00RRGGBB of colours (N, 3) 0..255."""
+    rgb = np.asarray(rgb).reshape(-1, 3).astype(np.uint32)
+    return (rgb[:, 0] << 16) | (rgb[:, 1] << 8) | rgb[:, 2]
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colours of packed 0x00RRGGBB values (N,)."""
+    packed = np.asarray(packed).astype(np.uint32)
+    return np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], axis=1).astype(np.uint8)
 
 
 @dataclass
@@ -53,6 +71,8 @@ class ObjectGeometry:
     voxel_size: float
     cameras: tuple[str, ...] = ()
     """Cameras whose (filtered) mask shows the object."""
+    colour: np.ndarray | None = None
+    """(M, 3) uint8 RGB seen at each surface point (None: not known, as from a cloud without it)."""
 
     @property
     def volume(self) -> float:
@@ -70,6 +90,8 @@ class ObservedFrame:
     """Filtered instance masks per camera: the silhouettes for the 2D loss."""
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    tracks: TrackPoints | None = None
+    """The surface tracks at this stamp (``recon.tracks``), when a tracker ran."""
 
     def silhouette(self, object_id: int, camera: str) -> np.ndarray:
         """(H, W) bool: where ``camera`` sees ``object_id``."""
@@ -79,17 +101,25 @@ class ObservedFrame:
         """The ``/mosiv/observed_objects`` cloud of this frame.
 
         Per object (in id order) its voxel centres, then its surface points; the field
-        ``voxel_size`` tells them apart (see VOXEL_FIELD).
+        ``voxel_size`` tells them apart (see VOXEL_FIELD). ``rgb`` (COLOUR_FIELD) holds each
+        surface point's colour, 0 on voxel centres; it is left out when an object's colours are
+        not known.
         """
         xyz, ids, sizes = [np.zeros((0, 3))], [np.zeros(0, np.uint16)], [np.zeros(0, np.float32)]
+        colours = [np.zeros(0, np.uint32)]
         for object_id in sorted(self.objects):
             geometry = self.objects[object_id]
             for points, size in ((geometry.occupancy, geometry.voxel_size), (geometry.surface, 0.0)):
                 xyz.append(points)
                 ids.append(np.full(len(points), object_id, np.uint16))
                 sizes.append(np.full(len(points), size, np.float32))
-        return PointCloud(np.concatenate(xyz), np.concatenate(ids),
-                          {VOXEL_FIELD: np.concatenate(sizes)}, stamp_ns=self.stamp_ns)
+            colours += [np.zeros(len(geometry.occupancy), np.uint32),
+                        pack_rgb(geometry.colour if geometry.colour is not None
+                                 else np.zeros((len(geometry.surface), 3), np.uint8))]
+        fields = {VOXEL_FIELD: np.concatenate(sizes)}
+        if all(g.colour is not None for g in self.objects.values()):
+            fields[COLOUR_FIELD] = np.concatenate(colours)
+        return PointCloud(np.concatenate(xyz), np.concatenate(ids), fields, stamp_ns=self.stamp_ns)
 
     @classmethod
     def from_cloud(cls, cloud: PointCloud) -> ObservedFrame:
@@ -102,9 +132,12 @@ class ObservedFrame:
             mine = cloud.object_id == object_id
             voxel = mine & (sizes > 0)
             size = float(sizes[voxel][0]) if voxel.any() else 0.0
+            surface = mine & (sizes == 0)
+            colour = (unpack_rgb(cloud.fields[COLOUR_FIELD][surface]) if COLOUR_FIELD in cloud.fields
+                      else None)
             objects[int(object_id)] = ObjectGeometry(int(object_id), cloud.xyz[voxel].astype(np.float64),
-                                                     cloud.xyz[mine & (sizes == 0)].astype(np.float64),
-                                                     size)
+                                                     cloud.xyz[surface].astype(np.float64), size,
+                                                     colour=colour)
         return cls(cloud.stamp_ns, objects)
 
     def summary(self) -> str:
@@ -118,7 +151,12 @@ class Reconstructor:
     """Stage 1 for one camera rig: calibrations, scene and settings fixed, frame sets streamed."""
 
     def __init__(self, cameras: Mapping[str, Camera], config: ReconstructionConfig,
-                 scene: Scene | None = None) -> None:
+                 scene: Scene | None = None, tracker: SurfaceTracker | None = None) -> None:
+        """``tracker``: the surface tracker to advance with every frame set (None: no tracks).
+
+        It keeps its tracks across Reconstructors (a node rebuilds its Reconstructor when a
+        camera joins).
+        """
         if not cameras:
             raise ValueError("reconstruction needs at least one calibrated camera")
         if config.min_views < 0:
@@ -126,6 +164,7 @@ class Reconstructor:
         self.cameras = dict(cameras)
         self.config = config
         self.scene = scene if scene is not None and scene.objects else None
+        self.tracker = tracker
         self.ground = ground_plane(scene)
         if config.workspace:
             if len(config.workspace) != 6:
@@ -187,7 +226,10 @@ class Reconstructor:
             carved[object_id] = carve_object(views, object_id, self.lattice, min_views=min_views,
                                              depth_tolerance=self.config.depth_tolerance,
                                              ground=self.ground)
-        surfaces = {i: np.concatenate([v.surface_points(i) for v in views]) for i in carved}
+        surfaces, colours = {}, {}
+        for object_id in carved:
+            points, rgb = zip(*(v.surface_points(object_id) for v in views), strict=True)
+            surfaces[object_id], colours[object_id] = np.concatenate(points), np.concatenate(rgb)
         occupancy = _separate(self.lattice, views, carved, surfaces)
         objects = {}
         for object_id, voxels in occupancy.items():
@@ -197,11 +239,19 @@ class Reconstructor:
                     f"but no voxel is consistent with every view and seen by {min_views} cameras; "
                     "no geometry for it in this frame")
                 continue
-            surface = _surface(self.lattice, voxels, surfaces[object_id])
+            near = _near(self.lattice, voxels, surfaces[object_id])
+            if len(surfaces[object_id]):
+                surface, colour = surfaces[object_id][near], colours[object_id][near]
+            else:
+                surface = self.lattice.centres(_boundary(voxels))
+                colour = _voxel_colours(views, object_id, self.lattice.centres(voxels),
+                                        self.lattice.voxel_size, surface)
             objects[object_id] = ObjectGeometry(object_id, self.lattice.centres(voxels), surface,
-                                                self.lattice.voxel_size, seen_by[object_id])
+                                                self.lattice.voxel_size, seen_by[object_id], colour)
+        tracks = (self.tracker.update(frame_set.stamp_ns, views, objects)
+                  if self.tracker is not None else None)
         return ObservedFrame(frame_set.stamp_ns, objects, {v.camera: v.labels for v in views},
-                             warnings, time.perf_counter() - start)
+                             warnings, time.perf_counter() - start, tracks)
 
     def _object_ids(self, views: list[View], where: str, warnings: list[str]) -> list[int]:
         seen = set().union(*(v.ids for v in views))
@@ -266,20 +316,57 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
     return {i: carved[i][~np.isin(keys[i], contested[winner != i])] for i in ids}
 
 
-def _surface(lattice: Lattice, voxels: np.ndarray, depth_points: np.ndarray) -> np.ndarray:
-    """Depth returns within one voxel of the volume; without depth, boundary voxel centres."""
+def _near(lattice: Lattice, voxels: np.ndarray, depth_points: np.ndarray) -> np.ndarray:
+    """(M,) bool: the depth returns within one voxel of the volume."""
     lo = voxels.min(axis=0) - 1
     grid = np.zeros(voxels.max(axis=0) - lo + 2, dtype=bool)
     grid[tuple((voxels - lo).T)] = True
-    if len(depth_points):
-        index = np.floor((depth_points - lattice.origin) / lattice.voxel_size).astype(np.int64) - lo
-        near = np.zeros(len(index), dtype=bool)
-        ok = np.all((index >= 1) & (index < np.array(grid.shape) - 1), axis=1)
-        for offset in np.ndindex(3, 3, 3):
-            shifted = index[ok] + np.array(offset) - 1
-            near[ok] |= grid[tuple(shifted.T)]
-        return depth_points[near]
-    return lattice.centres(np.argwhere(grid & ~_all_neighbours(grid)) + lo)
+    index = np.floor((depth_points - lattice.origin) / lattice.voxel_size).astype(np.int64) - lo
+    near = np.zeros(len(index), dtype=bool)
+    ok = np.all((index >= 1) & (index < np.array(grid.shape) - 1), axis=1)
+    for offset in np.ndindex(3, 3, 3):
+        shifted = index[ok] + np.array(offset) - 1
+        near[ok] |= grid[tuple(shifted.T)]
+    return near
+
+
+def _boundary(voxels: np.ndarray) -> np.ndarray:
+    """The voxels (N, 3) with a face neighbour outside the set."""
+    lo = voxels.min(axis=0) - 1
+    grid = np.zeros(voxels.max(axis=0) - lo + 2, dtype=bool)
+    grid[tuple((voxels - lo).T)] = True
+    return np.argwhere(grid & ~_all_neighbours(grid)) + lo
+
+
+def _voxel_colours(views: list[View], object_id: int, centres: np.ndarray, voxel_size: float,
+                   surface: np.ndarray) -> np.ndarray:
+    """Colours (M, 3) uint8 of surface voxel centres, from the pixels whose rays enter them first.
+
+    Each object pixel's ray (of a pixel the recorded and the filtered mask both give the object)
+    is followed to the first voxel it enters; a surface voxel takes the mean colour of those
+    pixels, or the nearest such voxel's colour where no ray enters it.
+    """
+    hits, rgb = [], []
+    for view in views:
+        row, col = np.nonzero((view.labels == object_id) & (view.mask == object_id))
+        points = view.first_hits(col, row, centres, voxel_size)
+        found = np.isfinite(points[:, 0])
+        hits.append(points[found])
+        rgb.append(view.rgb[row[found], col[found]].astype(np.float64))
+    hits, rgb = np.concatenate(hits), np.concatenate(rgb)
+    if len(hits) == 0:
+        return np.zeros((len(surface), 3), np.uint8)
+    who = cKDTree(surface).query(hits)[1]
+    sums = np.zeros((len(surface), 3))
+    counts = np.bincount(who, minlength=len(surface))
+    np.add.at(sums, who, rgb)
+    seen = counts > 0
+    colour = np.zeros((len(surface), 3))
+    colour[seen] = sums[seen] / counts[seen, None]
+    if not seen.all():
+        nearest = cKDTree(surface[seen]).query(surface[~seen])[1]
+        colour[~seen] = colour[seen][nearest]
+    return np.round(colour).astype(np.uint8)
 
 
 def _all_neighbours(grid: np.ndarray) -> np.ndarray:
@@ -294,6 +381,9 @@ def reconstruct_recording(recording: Recording, config: ReconstructionConfig,
                           scene: Scene | None = None) -> list[ObservedFrame]:
     """Stage 1 over a whole recording: one ``ObservedFrame`` per frame set, in stamp order.
 
+    Each frame carries its surface tracks (``ObservedFrame.tracks``); ``SurfaceTracks.of``
+    gathers them.
+
     Frame sets are matched with ``config.sync_tolerance``; a set lacking some cameras is
     reconstructed from the others (with a warning). ``scene`` defaults to the recording's.
     """
@@ -304,7 +394,7 @@ def iter_reconstruct(recording: Recording, config: ReconstructionConfig,
                      scene: Scene | None = None) -> Iterable[ObservedFrame]:
     """``reconstruct_recording`` one frame at a time (for progress reporting)."""
     reconstructor = Reconstructor(recording.cameras, config,
-                                  scene if scene is not None else recording.scene)
+                                  scene if scene is not None else recording.scene, SurfaceTracker(config.tracks))
     for message in reconstructor.notes:
         _LOG.warning(message)
     frame_sets = match_frames(recording.cameras, int(round(config.sync_tolerance * 1e9)))

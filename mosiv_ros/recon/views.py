@@ -3,7 +3,9 @@
 What it is for: turning a calibrated ``Camera`` and its ``Frame`` into what the carving rules of
 ``carving`` ask of a view: where a world point lands in the image and at what depth, the instance
 label and depth there, and how many pixels of a given object, or of any object, a rectangle of
-pixels holds (summed-area tables, O(1) per rectangle). Also the majority filter that cleans noisy instance masks and the
+pixels holds (summed-area tables, O(1) per rectangle). Back the other way, for surface points,
+their colours and surface tracks: the world point of a pixel at a depth, and where a pixel's ray
+first enters an object's occupied voxels. Also the majority filter that cleans noisy instance masks and the
 automatic reconstruction box.
 What it is not for: deciding occupancy (``carving``) or assembling frames from topics
 (``mosiv_ros.io.streams``).
@@ -63,6 +65,9 @@ class View:
         self.intrinsics = camera.intrinsics
         self.T_optical_world = np.linalg.inv(camera.T_world_optical)
         self.labels = majority_filter(frame.mask, mask_filter)
+        self.mask = frame.mask
+        """The mask as recorded: a pixel's colour is an object's only where both labels agree."""
+        self.rgb = frame.rgb
         self.depth = frame.depth if use_depth else None
         self.height, self.width = self.labels.shape
         self.focal = float(max(self.intrinsics.K[0, 0], self.intrinsics.K[1, 1]))
@@ -117,21 +122,68 @@ class View:
         edges = (self.labels[0], self.labels[-1], self.labels[:, 0], self.labels[:, -1])
         return any(bool(np.any(edge == object_id)) for edge in edges)
 
-    def surface_points(self, object_id: int) -> np.ndarray:
-        """World points (M, 3) of the object's pixels with a finite depth (empty without depth)."""
+    def surface_points(self, object_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """World points (M, 3) of the object's pixels with a finite depth, and their colours (M, 3).
+
+        Both empty without depth.
+        """
         if self.depth is None:
-            return np.zeros((0, 3))
+            return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
         row, col = np.nonzero((self.labels == object_id) & np.isfinite(self.depth))
-        if len(row) == 0:
-            return np.zeros((0, 3))
-        z = self.depth[row, col].astype(np.float64)
-        if np.any(self.intrinsics.D):
-            rays = _undistort(self.intrinsics, col, row)
+        return self.world_points(col, row, self.depth[row, col]), self.rgb[row, col]
+
+    @property
+    def centre(self) -> np.ndarray:
+        """The camera's optical centre in world (3,)."""
+        return np.linalg.inv(self.T_optical_world)[:3, 3]
+
+    def rays(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """World directions (M, 3) of the rays through pixel coordinates (u, v), optical z = 1."""
+        u, v = np.asarray(u, dtype=np.float64), np.asarray(v, dtype=np.float64)
+        if self.distorted:
+            rays = _undistort(self.intrinsics, u, v)
         else:
-            rays = np.stack([col, row, np.ones_like(col)], axis=1) @ np.linalg.inv(self.intrinsics.K).T
-        cam = rays * z[:, None]
-        T = np.linalg.inv(self.T_optical_world)
-        return cam @ T[:3, :3].T + T[:3, 3]
+            rays = np.stack([u, v, np.ones_like(u)], axis=1) @ np.linalg.inv(self.intrinsics.K).T
+        return rays @ self.T_optical_world[:3, :3]
+
+    def world_points(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """World points (M, 3) at depth ``z`` (along the optical axis) behind pixel coordinates (u, v)."""
+        return self.centre + self.rays(u, v) * np.asarray(z, dtype=np.float64)[:, None]
+
+    def first_hits(self, u: np.ndarray, v: np.ndarray, voxel_centres: np.ndarray,
+                   voxel_size: float) -> np.ndarray:
+        """Where the rays through (u, v) first enter the voxels (M, 3); NaN where they miss.
+
+        Marched in steps of a quarter voxel, so a hit lies at most that far inside the surface of
+        the voxels (the visual hull, for carved voxels).
+        """
+        hits = np.full((len(np.atleast_1d(u)), 3), np.nan)
+        if len(voxel_centres) == 0 or len(hits) == 0:
+            return hits
+        lo = voxel_centres.min(axis=0) - voxel_size / 2
+        index = np.round((voxel_centres - lo) / voxel_size - 0.5).astype(np.int64)
+        grid = np.zeros(index.max(axis=0) + 1, dtype=bool)
+        grid[tuple(index.T)] = True
+        hi = lo + np.asarray(grid.shape) * voxel_size
+        origin, direction = self.centre, self.rays(u, v)
+        with np.errstate(divide="ignore", invalid="ignore"):  # slab test against the voxels' box
+            t0, t1 = (lo - origin) / direction, (hi - origin) / direction
+        enter = np.nanmax(np.minimum(t0, t1), axis=1).clip(0.0)
+        leave = np.nanmin(np.maximum(t0, t1), axis=1)
+        step = voxel_size / 4 / np.linalg.norm(direction, axis=1)
+        todo = np.flatnonzero(enter < leave)
+        t = enter[todo] + step[todo] / 2
+        while len(todo):
+            point = origin + direction[todo] * t[:, None]
+            cell = np.floor((point - lo) / voxel_size).astype(np.int64)
+            inside = np.all((cell >= 0) & (cell < grid.shape), axis=1)
+            hit = inside.copy()
+            hit[inside] = grid[tuple(cell[inside].T)]
+            hits[todo[hit]] = point[hit]
+            t = t + step[todo]
+            going = ~hit & (t < leave[todo])
+            todo, t = todo[going], t[going]
+        return hits
 
 
 def _rectangles(table: np.ndarray, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
@@ -139,9 +191,9 @@ def _rectangles(table: np.ndarray, r0: np.ndarray, r1: np.ndarray, c0: np.ndarra
     return table[r1 + 1, c1 + 1] - table[r0, c1 + 1] - table[r1 + 1, c0] + table[r0, c0]
 
 
-def _undistort(intrinsics, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+def _undistort(intrinsics, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Normalised rays (x, y, 1) of distorted pixels (plumb_bob), by OpenCV's iterative inverse."""
-    pixels = np.stack([col, row], axis=1).astype(np.float64).reshape(-1, 1, 2)
+    pixels = np.stack([u, v], axis=1).astype(np.float64).reshape(-1, 1, 2)
     xy = cv2.undistortPoints(pixels, intrinsics.K, intrinsics.D).reshape(-1, 2)
     return np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
 

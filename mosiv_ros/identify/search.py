@@ -1,0 +1,301 @@
+"""The gradient-free search before Adam, and the batched losses it scores with (MOSIV stage 3).
+
+``GlobalSearch(identifier).run(velocity)`` returns the coordinates (u) of the best point found,
+and leaves the identifier's simulator set to them. All its candidates are simulated in batched
+rollouts of the first ``search.frames`` frames (0 = all):
+
+- ``search.samples`` points of a Latin hypercube over a box (``box``), which for a material
+  parameter is its prior range ``SEARCH_RANGES`` (a yield stress far above the true one leaves
+  the loss flat, so no gradient finds the way down: the samples must land below it) and
+  otherwise the initial value +- ``search_decades`` decades (scale parameters) or 2 logit units;
+- samples are scored by the objective Adam minimises (Chamfer and silhouette terms,
+  ``batch_object_losses``). The best sample is kept; with per-object losses, so is the
+  composite that takes each object's parameters from the sample that fits that object best
+  (each object's loss depends mostly on its own parameters, so 32 samples search each object's
+  few dimensions rather than all objects' together), whichever of the two fits better
+  (``best``);
+- the ``search.starts`` best points of this first round are the starts: each then goes through
+  ``search.rounds`` more such rounds, each in a box 3x narrower than the last around its best
+  so far (samples that move every coordinate at once follow the valleys of coupled parameters,
+  such as E and nu, which one-coordinate-at-a-time passes stall in), and the lowest end wins.
+  Several starts keep other basins alive: coupled parameters can explain the same motion twice
+  (on elastic_on_plastic one start narrowed onto a clay yield stress of 456 Pa with a ground
+  friction of 1.9, at a higher loss than the true 800 Pa and 0.5), and the first round's best
+  need not lie in the basin of lowest loss.
+
+The identifier (``identify.fit.Identifier``) supplies the problem, the settings, the free
+entries and its simulator's state, which rows of a batch start from.
+
+What it is for: finding the basin, and the loss of many parameter sets at once (also the
+uncertainty's, ``identify.estimates``). What it is not for: gradient steps
+(``identify.curriculum``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import queue
+from concurrent.futures import ThreadPoolExecutor
+from functools import partial
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mosiv_ros.identify.losses import geometry_loss, silhouette_object_losses
+from mosiv_ros.sim import Simulator
+from mosiv_ros.sim.errors import SimulationDiverged
+from mosiv_ros.simulation import OFFSET
+
+if TYPE_CHECKING:
+    from mosiv_ros.identify.fit import Identifier
+
+_LOG = logging.getLogger(__name__)
+
+SEARCH_RANGES = {
+    "E": (3.0e3, 1.0e6),
+    "nu": (0.05, 0.45),
+    "yield_stress": (1.0e2, 3.0e4),
+    "friction_angle": (math.radians(15.0), math.radians(50.0)),
+    "bulk_modulus": (1.0e4, 1.0e6),
+    "viscosity": (1.0e-2, 1.0e2),
+    "friction": (0.05, 1.5),
+}
+"""Prior ranges (SI) of the material parameters that the global search samples: soft solids,
+clays, sands and liquids a robot handles. Adam may leave them, the moduli only up to
+``FitSettings.max_modulus``."""
+
+
+class GlobalSearch:
+    """The search of ``identifier``'s problem; see the module docstring."""
+
+    def __init__(self, identifier: Identifier) -> None:
+        self.identifier = identifier
+        self.simulators: dict[tuple[int, int], Simulator] = {}
+        """The batched simulators kept, by (rows, worker slot)."""
+
+    def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
+                     frames: int | None = None, together: bool | None = None) -> np.ndarray:
+        """The fit's loss of each row of ``candidates`` (coordinate vectors, (B, P)).
+
+        The same objective as Adam's (weighted Chamfer and silhouette terms, mean over frames),
+        without gradients.
+
+        ``together`` (default: on a GPU): every row at the time step of the stiffest row, in one
+        batched rollout; else each row at its own stable time step (on the CPU a batch costs as
+        much as its rows, and the loss of one parameter set differs by up to 10 % between time
+        steps). On the CPU the rows, or slices of them when together, are simulated side by side,
+        one simulator per core (``FitSettings.cpu_workers``). Over frames 1..``frames`` (default
+        all); NaN where a rollout diverged (every row of its batch or slice).
+        """
+        return self.batch_object_losses(candidates, velocity, frames, together)[0]
+
+    def batch_object_losses(self, candidates: np.ndarray, velocity: np.ndarray,
+                            frames: int | None = None,
+                            together: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``batch_losses`` and each object's share of them, (B,) and (B, K).
+
+        The shares are NaN with the scene-level (ablation) loss, which does not split by object.
+        """
+        fit = self.identifier
+        obs = fit.problem.observations
+        frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
+        cuda = fit.sim.device.startswith("cuda")
+        if together is None:
+            together = cuda
+        fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
+        for f in range(1, frames + 1):
+            obs.trees(f)  # built once, before threads share them
+        # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
+        # slices of a batch) run side by side on every core, with the same results as in turn.
+        workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
+        if together:  # one time step, the stiffest row's, for every row
+            groups = [candidates] if cuda else np.array_split(candidates, workers)
+            sims = [self._batch(len(g), slot) for slot, g in enumerate(groups)]
+            insides = [self._configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
+            substeps = max(sim.time_step()[0] for sim in sims)
+            jobs = [partial(self._score, sim, inside, frames, substeps)
+                    for sim, inside in zip(sims, insides, strict=True)]
+        else:  # each row at its own time step, on the simulator of a free slot
+            idle = queue.SimpleQueue()
+            for slot in range(workers):
+                idle.put(self._batch(1, slot))
+
+            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                sim = idle.get()
+                try:
+                    return self._score(sim, self._configure(sim, row[None]), frames)
+                finally:
+                    idle.put(sim)
+
+            jobs = [partial(one, row) for row in candidates]
+        if workers == 1:  # the GPU's one batch, or one core: in this thread, as before the threads
+            results = [job() for job in jobs]
+        else:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                results = list(pool.map(lambda job: job(), jobs))
+        return (np.concatenate([total for total, _ in results]),
+                np.concatenate([per for _, per in results]))
+
+    def _batch(self, n: int, slot: int = 0) -> Simulator:
+        """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
+        key = (n, slot)
+        if key not in self.simulators:
+            problem = self.identifier.problem
+            self.simulators[key] = Simulator(problem.objects, problem.particles, problem.sim_config,
+                                             n_batch=n)
+        return self.simulators[key]
+
+    def _configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
+        """Set ``batch`` to the rows ``candidates``; (B, N) which particles are inside the surface.
+
+        What no entry sets comes from the identifier's own simulator, as ``Identifier.apply``
+        left it.
+        """
+        fit = self.identifier
+        n = len(candidates)
+        batch.set_initial_velocity(fit.sim.v0.numpy()[: fit.sim.n_particles])
+        offsets = np.repeat(fit.offsets[None], n, axis=0)
+        for name in dict.fromkeys(e.name for e in fit.entries):
+            values = offsets if name == OFFSET else np.repeat(fit.sim.params.get(name), n, axis=0)
+            for i, entry in enumerate(fit.entries):
+                if entry.name == name:
+                    values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
+            if name != OFFSET:
+                batch.params.set(name, values)
+        boundary = fit.problem.boundary
+        if boundary is None:
+            return np.ones((n, len(fit.index)), dtype=bool)
+        batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in offsets]))
+        return np.stack([boundary.inside(o[fit.index]) for o in offsets])
+
+    def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
+               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Roll the configured ``batch`` out over ``frames`` frames and score each row."""
+        fit = self.identifier
+        obs, s = fit.problem.observations, fit.settings
+        n = batch.n_batch
+        try:
+            traj = batch.rollout(frames, substeps=substeps)
+        except SimulationDiverged as error:
+            _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
+            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan)
+
+        def frame_loss(job: tuple[int, int]) -> tuple[float, np.ndarray]:
+            b, f = job
+            value, _, per = geometry_loss(traj[f, b, inside[b]].astype(np.float64),
+                                          fit.index[inside[b]], obs.points[f],
+                                          s.loss.per_object, obs.trees(f))
+            return s.loss.chamfer_weight * value, s.loss.chamfer_weight * per
+
+        # KD-tree queries release the GIL: score candidates and frames in threads
+        jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
+        with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+            scored = list(pool.map(frame_loss, jobs))
+        total = np.array([value for value, _ in scored]).reshape(n, frames).mean(axis=1)
+        per = np.stack([per for _, per in scored]).reshape(n, frames, -1).mean(axis=1)
+        if s.loss.silhouette_weight > 0 and obs.masks:
+            for b in range(n):  # as Identifier.window_loss: the particles inside the surface
+                silhouette = s.loss.silhouette_weight / frames * silhouette_object_losses(
+                    traj[1:frames + 1, b][:, inside[b]], fit.index[inside[b]], obs.object_ids,
+                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object,
+                    fit.torch_device)
+                total[b] += silhouette.sum()
+                per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
+        return total, per
+
+    def box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper coordinates the first round samples around ``u`` (module docstring)."""
+        fit = self.identifier
+        lo, hi = np.empty(len(u)), np.empty(len(u))
+        for i, entry in enumerate(fit.entries):
+            if entry.name in SEARCH_RANGES:
+                ends = [float(entry.coordinate.to_u(v)) for v in SEARCH_RANGES[entry.name]]
+                lo[i], hi[i] = min(ends), max(ends)
+            else:
+                half = (fit.settings.search_decades * np.log(10.0)
+                        if entry.coordinate.kind == "log" else 2.0)
+                lo[i], hi[i] = u[i] - half, u[i] + half
+        return lo, hi
+
+    def best(self, current: np.ndarray, candidates: np.ndarray, velocity: np.ndarray,
+             groups: list[list[int]], keep: int = 1) -> list[tuple[np.ndarray, float]]:
+        """The ``keep`` best of ``current``, ``candidates`` and their per-object composite.
+
+        ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
+        scored as ``batch_object_losses`` does by default (on a GPU in one batch, at the time
+        step of its stiffest row); the contenders (``current``, the composite and the ``keep``
+        best candidates) are then compared each at its own time step, as the gradient fit will
+        see them (the loss of one parameter set differs by up to 10 % between time steps, more
+        than a search step gains). Best first, as (u, loss); empty if every candidate diverged.
+        """
+        s = self.identifier.settings
+        total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
+        if np.all(np.isnan(total)):
+            return []
+        ranked = [candidates[i] for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
+        composite = ranked[0].copy()
+        if not np.all(np.isnan(per)):
+            for k, columns in enumerate(groups):
+                if columns and not np.all(np.isnan(per[:, k])):
+                    composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
+        contenders = [current]
+        for u in [composite, *ranked]:
+            if not any(np.allclose(u, c) for c in contenders):
+                contenders.append(u)
+        if len(contenders) == 1:
+            return [(current.copy(), float(np.nanmin(total)))]
+        losses = self.batch_object_losses(np.array(contenders), velocity, s.search.frames,
+                                          together=False)[0]
+        order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
+        return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
+
+    def run(self, velocity: np.ndarray) -> np.ndarray:
+        """Latin-hypercube rounds in ever narrower boxes (module docstring); return u, applied."""
+        fit = self.identifier
+        s = fit.settings
+        u = fit.pack()
+        lo, hi = self.box(u)
+        n_objects = len(fit.problem.objects)
+        per_object = [[i for i, e in enumerate(fit.entries) if e.per_object and e.index[1] == k]
+                      for k in range(n_objects)]
+        rng = np.random.default_rng(0)
+        ranged = np.array([e.name in SEARCH_RANGES for e in fit.entries])
+
+        def round_(centre: np.ndarray, number: int, keep: int) -> list[tuple[np.ndarray, float]]:
+            half = 0.5 * (hi - lo) / 3.0**number
+            box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
+            box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
+            box_hi = np.where(ranged, np.minimum(box_hi, hi), box_hi)
+            # Latin hypercube: every coordinate's range cut into as many strata as samples,
+            # one sample per stratum, strata paired at random across coordinates
+            strata = np.stack([rng.permutation(s.search.samples) for _ in centre], axis=1)
+            unit = (strata + rng.random(strata.shape)) / s.search.samples
+            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
+
+        def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
+            fit.report({"phase": "search", "done": done * s.search.samples,
+                        "total": rounds * s.search.samples})
+
+        if s.search.samples > 0:
+            rounds = 1 + max(1, s.search.starts) * s.search.rounds  # fewer if starts diverge
+            searched(0)
+            # the first round's best points are the starts: each narrows on its own basin
+            starts = round_(u, 0, max(1, s.search.starts))
+            rounds = 1 + len(starts) * s.search.rounds
+            searched(1)
+            ends = []
+            for k, (start, loss) in enumerate(starts):
+                for number in range(1, s.search.rounds + 1):
+                    found = round_(start, number, 1)
+                    if found:
+                        start, loss = found[0]
+                    searched(1 + k * s.search.rounds + number)
+                _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
+                          fit.values_of(start))
+                ends.append((loss, start))
+            if ends:
+                u = min(ends, key=lambda end: end[0])[1]
+        fit.apply(u, velocity)
+        return u

@@ -1,0 +1,128 @@
+"""The identifier's parts through their own interfaces: search, curriculum (Adam), checkpoint."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from test_identify import _cube_problem
+
+from mosiv_ros.config import updated
+from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE, Checkpoint, signature
+from mosiv_ros.identify.curriculum import Adam, FitState, window_starts
+from mosiv_ros.identify.fit import Identifier
+from mosiv_ros.identify.search import SEARCH_RANGES
+from mosiv_ros.sim import SimState
+
+
+def test_adams_first_step_is_the_learning_rate_against_the_gradients_sign_and_undo_takes_it_back():
+    adam = Adam(np.array([0.1, 0.2, 0.3]))
+    step = adam.step(np.array([4.0, -0.5, np.nan]))  # a NaN gradient moves nothing
+    # bias-corrected moments of one gradient g: m = g, v = g^2, so the step is -lr g / |g|
+    np.testing.assert_allclose(step, [-0.1, 0.2, 0.0], rtol=1e-9)
+    # the second: m = 0.1 g1 + 0.09 g2 over 0.19, v likewise with squares over 0.001999
+    g1, g2 = 4.0, 1.0
+    m = (0.1 * 0.9 * g1 + 0.1 * g2) / (1 - 0.9**2)
+    v = (0.001 * 0.999 * g1**2 + 0.001 * g2**2) / (1 - 0.999**2)
+    assert adam.step(np.array([g2, 0.0, 0.0]))[0] == pytest.approx(-0.1 * m / np.sqrt(v), rel=1e-9)
+    u, velocity = np.array([1.0]), np.array([[2.0, 3.0]])
+    moved_u = u + adam.last[:1]
+    moved_velocity = velocity + adam.last[1:].reshape(1, 2)
+    back_u, back_velocity = adam.undo(moved_u, moved_velocity)
+    np.testing.assert_allclose(back_u, u)
+    np.testing.assert_allclose(back_velocity, velocity)
+    assert not adam.last.any()  # nothing left to undo
+
+
+def test_windows_spread_over_the_sequence_and_the_whole_one_starts_at_frame_zero():
+    assert window_starts(20, 5, 3) == [0, 8, 15]
+    assert window_starts(20, 18, 5) == [0, 1, 2]  # no more windows than starting frames
+    assert window_starts(20, 20, 3) == [0]
+    assert window_starts(20, 5, 1) == [0]
+
+
+def _state(rng: np.random.Generator, n_entries: int = 2) -> FitState:
+    adam = Adam(np.full(n_entries + 6, 0.05))
+    adam.step(rng.normal(size=n_entries + 6))
+    return FitState(rng.normal(size=n_entries), rng.normal(size=(1, 6)), adam,
+                    (rng.normal(size=n_entries), rng.normal(size=(1, 6))),
+                    (0.25, rng.normal(size=n_entries), rng.normal(size=(1, 6)), np.array([0.25])),
+                    [{"stage": 0, "loss": 0.5, "values": {"cube.E": 1e4}}], 1, 3, 2)
+
+
+def test_a_checkpoint_reads_back_the_state_it_saved_and_only_for_its_own_fit(tmp_path, caplog):
+    state = _state(np.random.default_rng(1))
+    Checkpoint(str(tmp_path), "fit-a").save(state)
+    loaded = Checkpoint(str(tmp_path), "fit-a").load()
+    for name in ("u", "velocity"):
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(state, name))
+    for got, saved in zip([*loaded.start, *loaded.best], [*state.start, *state.best], strict=True):
+        np.testing.assert_array_equal(got, saved)
+    for name in ("m", "v", "lr"):
+        np.testing.assert_array_equal(getattr(loaded.adam, name), getattr(state.adam, name))
+    assert loaded.adam.t == state.adam.t == 1
+    assert (loaded.history, loaded.stage, loaded.iteration, loaded.failures) == \
+        (state.history, 1, 3, 2)
+    with caplog.at_level(logging.WARNING):
+        assert Checkpoint(str(tmp_path), "fit-b").load() is None
+    assert "belongs to another problem or settings" in caplog.text
+    (tmp_path / CHECKPOINT_FILE).write_bytes((tmp_path / CHECKPOINT_FILE).read_bytes()[:100])
+    assert Checkpoint(str(tmp_path), "fit-a").load() is None  # cut short: afresh
+    assert Checkpoint(str(tmp_path / "none"), "fit-a").load() is None
+    Checkpoint("", "fit-a").save(state)  # no directory: nothing kept
+    assert Checkpoint("", "fit-a").load() is None
+
+
+def test_a_fits_signature_changes_with_its_problem_and_result_settings_only():
+    problem, settings = _cube_problem({"E": 2e4}, {"E": 5e3}, ["E"], frames=3)
+    labels = Identifier(problem, settings).entries
+    base = signature(problem, [e.label for e in labels], settings.result_settings())
+    same = signature(problem, [e.label for e in labels],
+                     replace(settings, cpu_workers=1, checkpoint_dir="elsewhere").result_settings())
+    assert same == base
+    assert signature(problem, [e.label for e in labels],
+                     updated(settings, {"curriculum.iterations": 7}).result_settings()) != base
+    assert signature(problem, ["cube.nu"], settings.result_settings()) != base
+    shorter, _ = _cube_problem({"E": 2e4}, {"E": 5e3}, ["E"], frames=2)
+    assert signature(shorter, [e.label for e in labels], settings.result_settings()) != base
+
+
+def test_the_search_keeps_the_candidate_of_lowest_loss_and_samples_the_prior_range():
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=6,
+                                      cpu_workers=1)
+    identifier = Identifier(problem, settings)
+    search = identifier.search
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    coordinate = identifier.entries[0].coordinate
+    lo, hi = search.box(identifier.pack())
+    np.testing.assert_allclose([lo[0], hi[0]], [coordinate.to_u(v) for v in SEARCH_RANGES["E"]])
+    current = identifier.pack()
+    candidates = np.array([[coordinate.to_u(E)] for E in (4e3, 1.5e4, 2.5e4, 2e5)])
+    kept = search.best(current, candidates, velocity, [[0]], keep=2)
+    losses = search.batch_losses(np.vstack([current[None], candidates]), velocity, together=False)
+    order = np.argsort(losses)
+    assert [float(u[0]) for u, _ in kept] == [float(np.vstack([current[None], candidates])[i, 0])
+                                              for i in order[:2]]
+    assert [loss for _, loss in kept] == [losses[i] for i in order[:2]]
+    best_E = float(coordinate.to_theta(kept[0][0][0]))
+    assert min(abs(best_E / E - 1) for E in (1.5e4, 2.5e4)) < 1e-9  # one either side of the true 20 kPa
+
+
+def test_a_resynchronised_window_starts_on_the_observed_centroid_and_its_velocity():
+    problem, settings = _cube_problem({"E": 2e4}, {"E": 5e3}, ["E"], frames=6)
+    identifier = Identifier(problem, settings)
+    identifier.apply(identifier.pack(), np.zeros((1, 6)))  # dropped at rest: off the observations
+    anchor = identifier.curriculum.anchor([0, 3])
+    assert sorted(anchor) == [3]
+    state = identifier.curriculum.resynced(anchor, 3)
+    assert isinstance(state, SimState)
+    observed = identifier.observed_centroids
+    np.testing.assert_allclose(state.x[0].mean(axis=0), observed[3, 0], atol=1e-6)
+    dt = problem.observations.frame_dt
+    np.testing.assert_allclose(state.v[0].mean(axis=0), (observed[4, 0] - observed[2, 0]) / (2 * dt),
+                               atol=1e-5)
+    # the anchor's own state is left as it was: its centroid is elsewhere
+    assert np.linalg.norm(anchor[3].x[0].mean(axis=0) - observed[3, 0]) > 1e-3
