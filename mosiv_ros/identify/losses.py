@@ -10,7 +10,7 @@ per object keeps one object's points from "explaining" another's at contact. A s
   by KD-tree; its gradient holds the nearest-neighbour assignment fixed (exact almost
   everywhere).
 - Tracks: each surface track attached to its object's particles (``TrackAttachment``) is
-  compared with the attached point of the simulated particles, r = sum_j w_j x_j - y, by the
+  compared with the attached point of the simulated particles, r = sum_j w_j x_j + o - y, by the
   pseudo-Huber s^2 (sqrt(1 + |r|^2 / s^2) - 1) (about |r|^2 / 2 below the scale s, m^2 like the
   Chamfer, growing only as s |r| beyond it, so that a drifted track pulls with a bounded force),
   times the track's confidence, mean over the object's tracks alive in the frame; exact gradient.
@@ -92,7 +92,7 @@ def track_loss(x: np.ndarray, tracks: TrackAttachment, frame: int, scale: float,
     if not len(alive):
         return 0.0, grad, per
     weights, particles = tracks.weights[alive], tracks.particles[alive]
-    r = np.einsum("tj,tjc->tc", weights, x[particles]) - tracks.positions[frame, alive]
+    r = tracks.points(x, alive) - tracks.positions[frame, alive]
     root = np.sqrt(1.0 + np.sum(r**2, axis=1) / scale**2)
     objects = tracks.object_index[alive]
     count = np.bincount(objects, minlength=n_objects)

@@ -35,14 +35,18 @@ object's particles is not on its surface (a wrong 3D point, another object's tex
 class TrackAttachment:
     """Surface tracks attached to the particles of the first frame, over frames 0..F-1.
 
-    Track t follows the point ``sum_j weights[t, j] x[particles[t, j]]`` of the particles x
-    (inverse-distance weights over its object's ``ATTACH_NEIGHBOURS`` nearest particles at frame
-    0, summing to 1). ``positions`` (F, T, 3) the tracked points, NaN where a track is not alive;
-    ``confidence`` (F, T); ``object_index`` (T,) each track's object in the simulator's order.
+    Track t follows the point ``sum_j weights[t, j] x[particles[t, j]] + offset[t]`` of the
+    particles x (inverse-distance weights over its object's ``ATTACH_NEIGHBOURS`` nearest
+    particles at frame 0, summing to 1; ``offset`` from that mean to the track at frame 0, so that
+    the attached point starts on the track: the track is on the surface, the particles up to a
+    spacing inside it). ``positions`` (F, T, 3) the tracked points, NaN where a track is not
+    alive; ``confidence`` (F, T); ``object_index`` (T,) each track's object in the simulator's
+    order.
     """
 
     particles: np.ndarray
     weights: np.ndarray
+    offset: np.ndarray
     positions: np.ndarray
     confidence: np.ndarray
     object_index: np.ndarray
@@ -75,18 +79,20 @@ class TrackAttachment:
             particles.append(mine[np.minimum(nearest[near], len(mine) - 1)])
             weights.append(inverse / inverse.sum(axis=1, keepdims=True))
         kept = np.concatenate(kept) if kept else np.zeros(0, int)
-        attachment = cls(np.concatenate(particles) if particles else np.zeros((0, n), int),
-                         np.concatenate(weights) if weights else np.zeros((0, n)),
-                         positions[:, kept], confidence[:, kept], track_objects[kept])
+        particles = np.concatenate(particles) if particles else np.zeros((0, n), int)
+        weights = np.concatenate(weights) if weights else np.zeros((0, n))
+        attachment = cls(particles, weights, np.zeros((len(kept), 3)), positions[:, kept], confidence[:, kept],
+                         track_objects[kept])
+        attachment.offset = positions[0, kept] - attachment.points(x0)
         return attachment, len(alive) - len(kept)
 
     @property
     def n_tracks(self) -> int:
         return len(self.object_index)
 
-    def points(self, x: np.ndarray) -> np.ndarray:
-        """(T, 3) the attached points of particles ``x`` (N, 3)."""
-        return np.einsum("tj,tjc->tc", self.weights, x[self.particles])
+    def points(self, x: np.ndarray, tracks: slice | np.ndarray = slice(None)) -> np.ndarray:
+        """(T, 3) the attached points of particles ``x`` (N, 3) (of the ``tracks`` chosen)."""
+        return np.einsum("tj,tjc->tc", self.weights[tracks], x[self.particles[tracks]]) + self.offset[tracks]
 
     def select(self, frames: slice) -> TrackAttachment:
         """The attachment over a range of frames (the attachment itself stays)."""
