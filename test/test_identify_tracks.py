@@ -34,7 +34,8 @@ def _attached(frames: int = 3, spacing: float = 0.01):
     positions[1, 2] = np.nan
     confidence = RNG.uniform(0.3, 1.0, (frames, 10))
     track_objects = (faces[:, 0] > 0.05).astype(int)
-    attachment, dropped = TrackAttachment.attach(positions, confidence, track_objects, x0, objects, spacing)
+    attachment, dropped = TrackAttachment.attach(positions, confidence, track_objects, [0, 1], x0, objects,
+                                                 spacing)
     assert dropped == 0 and attachment.n_tracks == 10
     return x0, objects, attachment
 
@@ -46,7 +47,8 @@ def test_tracks_attach_to_their_own_objects_nearest_particles_and_tracks_off_the
     far = np.array([0.025, 0.025, 0.05 + ATTACH_REACH * 0.01 + 0.003])  # above the top layer's reach
     positions = np.stack([at_boundary, far, x0[7] + 0.001, x0[3]])[None]
     track_objects = np.array([0, 0, objects[7], -1])  # the last: an object the particles lack
-    attachment, dropped = TrackAttachment.attach(positions, np.ones((1, 4)), track_objects, x0, objects, 0.01)
+    attachment, dropped = TrackAttachment.attach(positions, np.ones((1, 4)), track_objects, [0, 1], x0,
+                                                 objects, 0.01)
     assert dropped == 2 and attachment.n_tracks == 2
     assert attachment.particles.shape == (2, ATTACH_NEIGHBOURS)
     assert np.all(objects[attachment.particles[0]] == 0) and np.all(objects[attachment.particles[1]] == objects[7])
@@ -59,8 +61,8 @@ def test_tracks_attach_to_their_own_objects_nearest_particles_and_tracks_off_the
     # moving the particles moves the attached points with them (rigid translation)
     np.testing.assert_allclose(attachment.points(x0 + [0.1, 0, 0]), attachment.points(x0) + [0.1, 0, 0])
     # frames are sliced, the attachment to the first frame's particles stays
-    later = TrackAttachment.attach(np.repeat(positions, 3, axis=0), np.ones((3, 4)), track_objects, x0,
-                                   objects, 0.01)[0].select(slice(1, 3))
+    later = TrackAttachment.attach(np.repeat(positions, 3, axis=0), np.ones((3, 4)), track_objects, [0, 1],
+                                   x0, objects, 0.01)[0].select(slice(1, 3))
     assert later.positions.shape == (2, 2, 3) and np.array_equal(later.particles, attachment.particles)
 
 
@@ -72,7 +74,7 @@ def test_track_loss_is_the_confidence_weighted_pseudo_huber_mean_over_each_objec
     offsets = np.array([[0.001, 0, 0], [0, 0.02, 0], [0, 0, 0.003]])
     positions = np.stack([on, on + offsets])
     confidence = np.array([[1.0, 1.0, 1.0], [0.5, 1.0, 0.8]])
-    attachment, _ = TrackAttachment.attach(positions, confidence, track_objects, x0, objects, 0.01)
+    attachment, _ = TrackAttachment.attach(positions, confidence, track_objects, [0, 1], x0, objects, 0.01)
     total, _, per = track_loss(x0, attachment, 1, scale, 2)
     rho = scale**2 * (np.sqrt(1 + np.sum(offsets**2, axis=1) / scale**2) - 1)
     assert per[0] == pytest.approx((0.5 * rho[0] + rho[1]) / 2)
@@ -123,7 +125,7 @@ def _dropped_cube(track_weight: float, chamfer_weight: float = 1.0, frames: int 
     x0 = cube[0]
     followed = np.argsort(np.linalg.norm(x0 - x0.mean(axis=0), axis=1))[-12:]  # the outermost particles
     positions = traj[:, followed] + 0.0005  # a little off them: weights over several particles
-    attachment, _ = TrackAttachment.attach(positions, np.ones(positions.shape[:2]), np.zeros(12, int), x0,
+    attachment, _ = TrackAttachment.attach(positions, np.ones(positions.shape[:2]), np.ones(12, int), [1], x0,
                                            np.zeros(len(x0), int), dx / 2)
     obs = Observations(1 / 30, [[traj[f]] for f in range(frames + 1)], object_ids=[1], tracks=attachment)
     particles = Particles(x=x0, volume=cube[1], object_index=np.zeros(len(x0), int))

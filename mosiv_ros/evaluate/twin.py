@@ -131,12 +131,10 @@ def track_errors(prediction: Prediction, tracks: SurfaceTracks, fitted_frames: i
     frame 0, and their ``count``; with ``attached`` and ``dropped`` (tracks alive at frame 0 that
     no particle of their object is near).
     """
-    index = {object_id: k for k, object_id in enumerate(prediction.object_ids)}
-    objects = np.array([index.get(int(i), -1) for i in tracks.object_id], dtype=int)
     frames = min(len(tracks.positions), len(prediction.positions))
     attached, dropped = TrackAttachment.attach(tracks.positions[:frames], tracks.confidence[:frames],
-                                               objects, prediction.positions[0],
-                                               prediction.object_index, spacing)
+                                               tracks.object_id, prediction.object_ids,
+                                               prediction.positions[0], prediction.object_index, spacing)
     out: dict = {"attached": attached.n_tracks, "dropped": dropped}
     distances = {"observed": [], "future": []}
     for f in range(1, frames):

@@ -52,17 +52,19 @@ class TrackAttachment:
     object_index: np.ndarray
 
     @classmethod
-    def attach(cls, positions: np.ndarray, confidence: np.ndarray, track_objects: np.ndarray,
-               x0: np.ndarray, particle_objects: np.ndarray, spacing: float
+    def attach(cls, positions: np.ndarray, confidence: np.ndarray, track_object_ids: np.ndarray,
+               object_ids: list[int], x0: np.ndarray, particle_objects: np.ndarray, spacing: float
                ) -> tuple[TrackAttachment, int]:
         """Attach the tracks alive at frame 0 to the particles ``x0`` (N, 3) of their objects.
 
-        ``positions`` (F, T, 3) and ``confidence`` (F, T) as stored; ``track_objects`` (T,) each
-        track's object index (-1: none of the particles' objects); ``particle_objects`` (N,);
-        ``spacing`` the particles' spacing (m). Returns the attachment and how many tracks alive at
-        frame 0 were dropped (no object, or farther than ``ATTACH_REACH`` spacings from its
-        particles).
+        ``positions`` (F, T, 3) and ``confidence`` (F, T) as stored; ``track_object_ids`` (T,)
+        each track's object id, ``object_ids`` the objects' ids in the order that
+        ``particle_objects`` (N,) indexes; ``spacing`` the particles' spacing (m). Returns the
+        attachment and how many tracks alive at frame 0 were dropped (an object not among
+        ``object_ids``, or farther than ``ATTACH_REACH`` spacings from its particles).
         """
+        index = {int(object_id): k for k, object_id in enumerate(object_ids)}
+        track_objects = np.array([index.get(int(i), -1) for i in track_object_ids], dtype=int)
         alive = np.flatnonzero(np.isfinite(positions[0, :, 0]))
         n = ATTACH_NEIGHBOURS
         kept, particles, weights = [], [], []

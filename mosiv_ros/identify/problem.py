@@ -208,9 +208,7 @@ def _attached_tracks(frames: Sequence[ObservedFrame], steps: list[int], particle
     positions = np.full((steps[-1] + 1, len(tracks.track_id), 3), np.nan)
     confidence = np.zeros(positions.shape[:2])
     positions[steps], confidence[steps] = tracks.positions, tracks.confidence
-    index = {object_id: k for k, object_id in enumerate(ids)}
-    objects = np.array([index.get(int(i), -1) for i in tracks.object_id], dtype=int)
-    attachment, dropped = TrackAttachment.attach(positions, confidence, objects, particles.x,
+    attachment, dropped = TrackAttachment.attach(positions, confidence, tracks.object_id, ids, particles.x,
                                                  particles.object_index, spacing)
     _LOG.info("surface tracks: %d attached to the particles, %d dropped (farther than %.1f particle "
               "spacings from their object's particles)", attachment.n_tracks, dropped, ATTACH_REACH)
