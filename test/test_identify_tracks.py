@@ -10,6 +10,7 @@ import pytest
 from sim_scenes import scene
 
 from mosiv_ros.config import updated
+from mosiv_ros.identify.checkpoint import signature
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import track_loss
 from mosiv_ros.identify.observations import ATTACH_NEIGHBOURS, ATTACH_REACH, Observations, TrackAttachment
@@ -201,8 +202,10 @@ def test_the_fit_problem_attaches_the_frames_tracks_and_a_lost_frame_has_none_al
     # the loop and the family choice slice the frames: the attachment stays with them
     assert problem.observations.select(slice(0, 3)).tracks.positions.shape == (3, 2, 3)
     # off (loss.track_weight 0), or no tracks at the first frame: no track term at all
-    assert build_problem(frames, lifted, scene_, options=ProblemOptions(use_masks=False, use_tracks=False)
-                         ).observations.tracks is None
+    untracked = build_problem(frames, lifted, scene_, options=ProblemOptions(use_masks=False, use_tracks=False))
+    assert untracked.observations.tracks is None
+    # a checkpoint of the fit without tracks is not resumed by the fit with them
+    assert signature(problem, ["E"], {}) != signature(untracked, ["E"], {})
     first_lost, _, _ = _frames_with_tracks(lose_tracks_at=(0,))
     assert build_problem(first_lost, lifted, scene_,
                          options=ProblemOptions(use_masks=False)).observations.tracks is None
