@@ -8,7 +8,9 @@ first 70 % of the frames, uncertainty, twin, scores) on each bag and writes, per
 every stage, the fit's iterations (the search's wall time and the mean wall time of an iteration,
 split into simulation forward, loss and backward), every estimated parameter against
 ``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu, relative error otherwise)
-and the CD, EMD, IoU, PSNR and SSIM on the fitted and the held-out frames. ``--ablation`` adds a
+and the CD, EMD, IoU, PSNR, SSIM and the surface track error on the fitted and the held-out
+frames. A params file with ``loss: {track_weight: 0.0}`` fits without the track loss (tracks off
+against on, side by side). ``--ablation`` adds a
 second fit with the scene-level (union) losses instead of the per-object ones.
 
 Two switches fit from a better model than the recording gives, to tell what the estimated
@@ -66,7 +68,8 @@ def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
             "particles": report["particles"],
             "frames": report["frames"], "fitted_frames": report["fitted_frames"],
             "estimates": report["estimates"]["objects"], "scene": report["estimates"]["scene"],
-            "parameter_errors": report.get("parameter_errors", {}), "metrics": report["metrics"]}
+            "parameter_errors": report.get("parameter_errors", {}), "metrics": report["metrics"],
+            "tracks": report["tracks"]}
 
 
 def main() -> int:

@@ -6,9 +6,9 @@
 
 Builds the fit problem as ``mosiv run`` does (reconstruction, lifting, the first 70 % of the
 frames; ``--params-file`` gives the node parameters) and evaluates the identifier's own objective
-(``GlobalSearch.batch_object_losses``: Chamfer and silhouette terms, mean over the fitted frames;
-on the CPU each row at its own stable time step) at a base point, then along one entry at a time
-from it (``--scan ball.nu=0.1,0.2``; entries are named as the fit names them: ``ball.E``,
+(``GlobalSearch.batch_object_losses``: Chamfer, silhouette and track terms, mean over the fitted
+frames; on the CPU each row at its own stable time step) at a base point, then along one entry at
+a time from it (``--scan ball.nu=0.1,0.2``; entries are named as the fit names them: ``ball.E``,
 ``ground.friction``, ``clay.boundary_offset``).
 
 The base point is the recording's ground truth (``--at truth``: parameters and initial
@@ -24,6 +24,9 @@ true density instead of the declared or default one the fit uses. (With identify
 ``density_ratios`` the fitted densities are entries like any other: ``--set``, ``--scan``.)
 ``--true-effects`` declares the effects the recording leaves undeclared (the thrown ball's air
 drag) at their true values, so that the truth is a point of the fit's model.
+
+A params file with ``loss: {track_weight: 0.0}`` leaves the track term out (the objective with
+and without tracks, side by side).
 
 Writes JSON: the options, the base point, and per row the whole loss and each object's share.
 """

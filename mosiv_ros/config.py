@@ -180,6 +180,12 @@ class LossConfig:
     chamfer_weight: float = _param(1.0, "Weight of the per-object Chamfer loss.", 0.0, 1.0e6)
     silhouette_weight: float = _param(0.1, "Weight of the per-object silhouette loss.", 0.0, 1.0e6)
     per_object: bool = _param(True, "Per-object losses (MOSIV); False = scene-level ablation.")
+    track_weight: float = _param(
+        1.0, "Weight of the per-object surface track loss (tracks attached to the particles at the first "
+        "fitted frame); 0 = off. Nothing changes for a recording without tracks.", 0.0, 1.0e6)
+    track_scale: float = _param(
+        0.005, "Scale of the track loss's pseudo-Huber, metres: a track's error counts as its square "
+        "below it, growing only linearly beyond (a drifted track's pull is bounded).", 1.0e-5, 1.0)
 
 
 @dataclass

@@ -68,6 +68,12 @@ def _markdown(report: dict, plots: list[str]) -> str:
         cells = [_cell(m, "cd", 1e3), _cell(m, "emd", 1e3), _cell(m, "cd_truth", 1e3),
                  _cell(m, "iou"), _cell(m, "psnr"), _cell(m, "ssim")]
         lines.append(f"| {part} ({m['frames']}) | " + " | ".join(cells) + " |")
+    tracks = report.get("tracks") or {}
+    if tracks.get("attached"):
+        lines += ["", f"Surface tracks: {tracks['attached']} attached to the twin's particles at the first "
+                      f"frame ({tracks['dropped']} off them dropped); the twin's distance to them, median / RMS:"]
+        lines += [f"{part} frames {tracks[part]['median'] * 1e3:.2f} / {tracks[part]['rms'] * 1e3:.2f} mm "
+                  f"({tracks[part]['count']} track points)." for part in ("observed", "future") if part in tracks]
     if report.get("truth_effects"):
         lines += ["", "Ground-truth effects: " + ", ".join(
             f"{e.get('type')} ({'declared' if e.get('declared') else 'undeclared'})"

@@ -98,11 +98,14 @@ def test_with_the_undeclared_drag_accepted_the_stiffness_moves_closer_to_the_tru
     # with E free, damping ranks first (a soft, damped cube slows down too): refit three
     result = _close(tmp_path_factory, "stiffness", scene, loop=LoopConfig(silhouettes=False, top_k=3))
     assert result.verdict == EXPLAINED and result.after.names == ["drag"]
-    assert result.after.effects[0][1]["drag.coefficient[jelly]"] == pytest.approx(5.0, rel=0.3)  # measured 6.0
-    assert _factor(result) >= 2.0  # measured 27.7 -> 5.6 mm (4.9x)
+    # measured 6.82 with the surface track loss, 5.91 without (loss.track_weight 0): the tracks
+    # pull E closer (below) and leave more of the slowing to the drag
+    assert result.after.effects[0][1]["drag.coefficient[jelly]"] == pytest.approx(5.0, rel=0.4)
+    assert _factor(result) >= 2.0  # measured 8.0x (13.0x without the track loss)
     error = {label: abs(math.log10(model.estimates.objects[0].params["E"] / truth))
              for label, model in (("before", result.before), ("after", result.after))}
-    # measured E 1.46 kPa -> 15.7 kPa: |log10 error| 1.31 -> 0.28 (nu 0.15 -> 0.10 does not improve)
+    # measured E 4.49 kPa -> 19.1 kPa: |log10 error| 0.82 -> 0.20 (without the track loss 4.50 ->
+    # 14.4 kPa: 0.82 -> 0.32)
     assert error["after"] < 0.5 * error["before"] and error["after"] < 0.5
 
 

@@ -1,7 +1,9 @@
 """Node processes given faulty input: non-finite clouds, an empty particle cloud, a corrupt
-checkpoint, a lost frame set, a failing worker."""
+checkpoint, a lost frame set, a failing worker, a malformed surface tracks cloud."""
 
 from __future__ import annotations
+
+import re
 
 import numpy as np
 import pytest
@@ -17,6 +19,7 @@ from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.nodes.common import STREAM_QOS
 from mosiv_ros.nodes.outputs import statuses_of
+from mosiv_ros.nodes.reconstruction_node import TRACKS_TOPIC
 from mosiv_ros.prepare import RunConfig, prepare
 
 
@@ -115,3 +118,40 @@ def test_identify_node_waits_out_an_empty_cloud_a_corrupt_checkpoint_a_lost_fram
     assert estimates.frames == 7 and [o.level != ERROR for o in estimates.objects] == [True], estimates.objects
     status = next(s for m in listener.received["/diagnostics"] for s in m.status if s.level == bytes([2]))
     assert status.name == "mosiv/identify" and str(output.parent) in status.message
+
+
+@pytest.mark.slow
+def test_identify_node_fits_the_surface_tracks_and_drops_a_malformed_tracks_cloud(drop_bag, prepared, fast_params):
+    tracks = [f.tracks.to_cloud() for f in prepared.frames[:6]]
+    assert all(len(cloud.xyz) for cloud in tracks)  # the jelly's texture gives tracks from the first frame
+    lacking = PointCloud(tracks[0].xyz, tracks[0].object_id, {"track_id": tracks[0].fields["track_id"]},
+                         tracks[0].stamp_ns)
+    listener = Listener("tracks_prober")
+    try:
+        lifted = listener.node.create_publisher(PointCloud2, "/mosiv/particles", LATCHED)
+        observed = listener.node.create_publisher(PointCloud2, "/mosiv/observed_objects", STREAM_QOS)
+        surface = listener.node.create_publisher(PointCloud2, TRACKS_TOPIC, STREAM_QOS)
+        listener.subscribe(DiagnosticArray, "/mosiv/material_estimates", LATCHED)
+        params = {"scene": str(drop_bag), "window": 6, "output_yaml": ""}
+        with Graph([NodeSpec("identify_node", params)], params_file=fast_params, sink=None) as graph:
+            node = graph.nodes["identify_node"]
+            assert listener.wait_for(lambda: surface.get_subscription_count() >= 1
+                                     and observed.get_subscription_count() >= 1, 20)
+            surface.publish(_msg(lacking))  # no confidence field: logged and dropped
+            for cloud in tracks:
+                surface.publish(_msg(cloud))
+            lifted.publish(_msg(prepared.lifted.to_cloud()))
+            for frame in prepared.frames[:6]:
+                observed.publish(_msg(frame.to_cloud()))
+            node.wait_for_line("identification done", 300)
+            assert listener.wait_for(lambda: listener.received["/mosiv/material_estimates"], 10)
+            assert node.process.poll() is None
+            text = "\n".join(node.lines)
+    finally:
+        listener.close()
+    assert f"{TRACKS_TOPIC}: dropped malformed message: surface track cloud of stamp" in text, text
+    assert "lacks field(s) ['confidence']" in text, text
+    assert "fitting 6 frames from stamp" in text and "(6 with surface tracks)" in text, text
+    attached = re.search(r"surface tracks: (\d+) attached to the particles", text)
+    assert attached and int(attached.group(1)) > 0, text
+    assert [o.level != ERROR for o in _estimates(listener).objects] == [True], _estimates(listener).objects

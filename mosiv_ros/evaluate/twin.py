@@ -8,6 +8,10 @@ For every frame of the recording (the twin's frames are the observation frames),
   lifting gave it: the colour under it in the lifted frame) against each camera's image:
   silhouette IoU per object, PSNR and SSIM per view.
 
+- tracks: each surface track alive at the first frame, attached to the twin's particles there
+  as the fit's track loss attaches it (``TrackAttachment``), against the attached point of the
+  twin's particles in every later frame it is alive: median and RMS of the 3D distance.
+
 Frames up to the end of the fitted window are "observed", later ones "future". Parameter errors
 compare estimates with ``ground_truth.yaml``: log10 ratio for scale parameters (E, yield stress,
 bulk modulus, viscosity), absolute difference for nu, a vector's components and a true value of
@@ -29,10 +33,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mosiv_ros.identify.estimates import Estimates
+from mosiv_ros.identify.observations import TrackAttachment
 from mosiv_ros.io.recording import Recording, match_frames
 from mosiv_ros.metrics import chamfer_distance, emd, iou, psnr, ssim
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.recon.tracks import SurfaceTracks
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
 
 LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
@@ -113,6 +119,34 @@ def summarise(scores: Sequence[FrameScores]) -> dict:
             if key in ("cd", "cd_truth", "iou") and per:
                 entry[f"{key}_per_object"] = {n: float(np.mean(v)) for n, v in per.items()}
         out[part] = entry
+    return out
+
+
+def track_errors(prediction: Prediction, tracks: SurfaceTracks, fitted_frames: int,
+                 spacing: float) -> dict:
+    """The twin's track error (module docstring) on the observed and the future frames.
+
+    ``tracks`` over the prediction's frames (frame 0: the twin's first), ``spacing`` the
+    particles' (m). Per part: ``median`` and ``rms`` (m) over every (frame, track) alive after
+    frame 0, and their ``count``; with ``attached`` and ``dropped`` (tracks alive at frame 0 that
+    no particle of their object is near).
+    """
+    frames = min(len(tracks.positions), len(prediction.positions))
+    attached, dropped = TrackAttachment.attach(tracks.positions[:frames], tracks.confidence[:frames],
+                                               tracks.object_id, prediction.object_ids,
+                                               prediction.positions[0], prediction.object_index, spacing)
+    out: dict = {"attached": attached.n_tracks, "dropped": dropped}
+    distances = {"observed": [], "future": []}
+    for f in range(1, frames):
+        alive = np.isfinite(attached.positions[f, :, 0])
+        error = np.linalg.norm(attached.points(prediction.positions[f])[alive]
+                               - attached.positions[f, alive], axis=1)
+        distances["future" if f >= fitted_frames else "observed"].append(error)
+    for part, chunks in distances.items():
+        values = np.concatenate(chunks) if chunks else np.zeros(0)
+        if len(values):
+            out[part] = {"median": float(np.median(values)), "rms": float(np.sqrt(np.mean(values**2))),
+                         "count": len(values)}
     return out
 
 

@@ -39,6 +39,7 @@ def signature(problem, labels: list[str], settings: dict) -> str:
         "free": labels, "frames": obs.n_frames,
         "frame_dt": obs.frame_dt, "particles": int(len(problem.particles.object_index)),
         "centroids": np.round(np.nan_to_num(obs.centroids()), 6).tolist(),
+        "tracks": 0 if obs.tracks is None else obs.tracks.n_tracks,
         "settings": settings,
         "initial_velocity": _rounded(problem.initial_velocity),
         "warm_start": [_rounded(a) for a in problem.warm_start or ()],

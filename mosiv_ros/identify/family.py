@@ -250,7 +250,9 @@ def _signature(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: 
         "stamps": [f.stamp_ns for f in frames], "fitted": fitted,
         "points": [[len(g.occupancy) for _, g in sorted(f.objects.items())] for f in frames],
         "particles": len(lifted.x), "x": round(float(lifted.x.sum()), 6),
-        "scene": scene_to_yaml(scene), "use_masks": options.use_masks, "fit_density": options.fit_density,
+        "tracks": [0 if f.tracks is None else len(f.tracks.track_id) for f in frames],
+        "scene": scene_to_yaml(scene), "use_masks": options.use_masks, "use_tracks": options.use_tracks,
+        "fit_density": options.fit_density,
         "settings": settings.result_settings(),
     })
     return hashlib.sha256(text.encode()).hexdigest()

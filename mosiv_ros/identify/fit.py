@@ -21,8 +21,8 @@ What the identifier itself does:
   iteration's cost with it (the time step shrinks as 1 / sqrt(modulus));
 - initial velocities start from the observed centroid motion of the first frames (an object
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
-- the objective (``window_loss``): Chamfer and silhouette terms over a window of frames, and
-  their gradients with respect to the coordinates and the initial velocities;
+- the objective (``window_loss``): Chamfer, silhouette and surface track terms over a window of
+  frames, and their gradients with respect to the coordinates and the initial velocities;
 - the result is the lowest whole-window loss among the search's point, the whole-sequence
   stage's iterates and Adam's last step (a windowed stage's objective is not the whole window's,
   and Adam's last step need not be its best); a last step that diverges loses to the other
@@ -47,7 +47,7 @@ from mosiv_ros.config import FitConfig
 from mosiv_ros.identify.checkpoint import Checkpoint, signature
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, Curriculum, FitState
-from mosiv_ros.identify.losses import geometry_loss, silhouette_losses
+from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, track_loss
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.identify.search import GlobalSearch
 from mosiv_ros.lifting.lift import boundary_volume
@@ -314,6 +314,13 @@ class Identifier:
                                          s.splat_radius, s.loss.per_object, self.torch_device)
             total += s.loss.silhouette_weight * value
             dL[1:, 0, inside] += s.loss.silhouette_weight * g
+        if s.loss.track_weight > 0 and obs.tracks is not None:
+            for f in range(1, length + 1):  # every particle: a track may hold on to the band
+                value, g, per_f = track_loss(traj[f, 0].astype(np.float64), obs.tracks, start + f,
+                                             s.loss.track_scale, obs.n_objects)
+                total += s.loss.track_weight * value
+                dL[f, 0] += s.loss.track_weight * g
+                per += s.loss.track_weight * per_f
         total, dL, per = total / length, dL / length, per / length
         self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:

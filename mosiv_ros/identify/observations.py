@@ -2,7 +2,8 @@
 
 ``Observations`` holds, for frames at a fixed spacing ``frame_dt`` starting at the first observed
 frame (the simulation's t = 0), each object's observed points (surface or occupancy, world frame)
-and optionally calibrated views with their instance masks for the 2D loss. Objects are in the
+and optionally calibrated views with their instance masks for the 2D loss, and surface tracks
+attached to the particles (``TrackAttachment``) for the track loss. Objects are in the
 simulator's order; ``object_ids`` gives each one's id in the masks.
 
 What it is for: the data side of the losses, and the first-frame estimates the fit starts from
@@ -12,7 +13,7 @@ images (``mosiv_ros.recon``) or losses (``mosiv_ros.identify.losses``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -23,6 +24,81 @@ NOISE_FLOOR = 0.001
 """Centroid noise (m) of a reconstruction that a motion must explain beyond."""
 MOTION_FLOOR = 0.005
 """Least centroid displacement (m) from the second to the last of the frames used, for motion."""
+ATTACH_NEIGHBOURS = 4
+"""Particles a surface track is attached to (its nearest of its own object's)."""
+ATTACH_REACH = 1.5
+"""Farthest a track's nearest particle may be, in particle spacings: a track farther off its
+object's particles is not on its surface (a wrong 3D point, another object's texture)."""
+
+
+@dataclass
+class TrackAttachment:
+    """Surface tracks attached to the particles of the first frame, over frames 0..F-1.
+
+    Track t follows the point ``sum_j weights[t, j] x[particles[t, j]] + offset[t]`` of the
+    particles x (inverse-distance weights over its object's ``ATTACH_NEIGHBOURS`` nearest
+    particles at frame 0, summing to 1; ``offset`` from that mean to the track at frame 0, so that
+    the attached point starts on the track: the track is on the surface, the particles up to a
+    spacing inside it). ``positions`` (F, T, 3) the tracked points, NaN where a track is not
+    alive; ``confidence`` (F, T); ``object_index`` (T,) each track's object in the simulator's
+    order.
+    """
+
+    particles: np.ndarray
+    weights: np.ndarray
+    offset: np.ndarray
+    positions: np.ndarray
+    confidence: np.ndarray
+    object_index: np.ndarray
+
+    @classmethod
+    def attach(cls, positions: np.ndarray, confidence: np.ndarray, track_object_ids: np.ndarray,
+               object_ids: list[int], x0: np.ndarray, particle_objects: np.ndarray, spacing: float
+               ) -> tuple[TrackAttachment, int]:
+        """Attach the tracks alive at frame 0 to the particles ``x0`` (N, 3) of their objects.
+
+        ``positions`` (F, T, 3) and ``confidence`` (F, T) as stored; ``track_object_ids`` (T,)
+        each track's object id, ``object_ids`` the objects' ids in the order that
+        ``particle_objects`` (N,) indexes; ``spacing`` the particles' spacing (m). Returns the
+        attachment and how many tracks alive at frame 0 were dropped (an object not among
+        ``object_ids``, or farther than ``ATTACH_REACH`` spacings from its particles).
+        """
+        index = {int(object_id): k for k, object_id in enumerate(object_ids)}
+        track_objects = np.array([index.get(int(i), -1) for i in track_object_ids], dtype=int)
+        alive = np.flatnonzero(np.isfinite(positions[0, :, 0]))
+        n = ATTACH_NEIGHBOURS
+        kept, particles, weights = [], [], []
+        for k in np.unique(track_objects[alive]):
+            mine = np.flatnonzero(particle_objects == k)
+            if k < 0 or not len(mine):
+                continue
+            tracks = alive[track_objects[alive] == k]
+            # an object of fewer than n particles: the missing neighbours are at infinity (weight 0)
+            distance, nearest = cKDTree(x0[mine]).query(positions[0, tracks].reshape(-1, 3), k=n)
+            near = distance[:, 0] <= ATTACH_REACH * spacing
+            inverse = 1.0 / np.maximum(distance[near], 1e-9 * spacing)
+            kept.append(tracks[near])
+            particles.append(mine[np.minimum(nearest[near], len(mine) - 1)])
+            weights.append(inverse / inverse.sum(axis=1, keepdims=True))
+        kept = np.concatenate(kept) if kept else np.zeros(0, int)
+        particles = np.concatenate(particles) if particles else np.zeros((0, n), int)
+        weights = np.concatenate(weights) if weights else np.zeros((0, n))
+        attachment = cls(particles, weights, np.zeros((len(kept), 3)), positions[:, kept], confidence[:, kept],
+                         track_objects[kept])
+        attachment.offset = positions[0, kept] - attachment.points(x0)
+        return attachment, len(alive) - len(kept)
+
+    @property
+    def n_tracks(self) -> int:
+        return len(self.object_index)
+
+    def points(self, x: np.ndarray, tracks: slice | np.ndarray = slice(None)) -> np.ndarray:
+        """(T, 3) the attached points of particles ``x`` (N, 3) (of the ``tracks`` chosen)."""
+        return np.einsum("tj,tjc->tc", self.weights[tracks], x[self.particles[tracks]]) + self.offset[tracks]
+
+    def select(self, frames: slice) -> TrackAttachment:
+        """The attachment over a range of frames (the attachment itself stays)."""
+        return replace(self, positions=self.positions[frames], confidence=self.confidence[frames])
 
 
 @dataclass
@@ -51,6 +127,7 @@ class Observations:
 
     ``points[f][k]`` (M, 3) are object k's points at frame f (M may be 0 where it was not seen).
     ``masks[f][view name]`` (H, W) holds object ids (0 = background) for the views in ``views``.
+    ``tracks`` covers the same frames.
     """
 
     frame_dt: float
@@ -59,6 +136,8 @@ class Observations:
     views: list[View] = field(default_factory=list)
     masks: list[dict[str, np.ndarray]] = field(default_factory=list)
     start_ns: int = 0
+    tracks: TrackAttachment | None = None
+    """Surface tracks attached to the first frame's particles (None: no track loss)."""
     _trees: dict[int, list] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def trees(self, frame: int) -> list[cKDTree | None]:
@@ -76,6 +155,8 @@ class Observations:
                 raise ValueError(f"frame {f}: {len(frame)} point sets for {k} objects")
         if self.masks and len(self.masks) != len(self.points):
             raise ValueError(f"{len(self.masks)} mask frames for {len(self.points)} point frames")
+        if self.tracks is not None and len(self.tracks.positions) != len(self.points):
+            raise ValueError(f"{len(self.tracks.positions)} track frames for {len(self.points)} point frames")
 
     @property
     def n_frames(self) -> int:
@@ -131,4 +212,5 @@ class Observations:
         start = frames.start or 0
         return Observations(self.frame_dt, self.points[frames], self.object_ids, self.views,
                             self.masks[frames] if self.masks else [],
-                            self.start_ns + int(round(start * self.frame_dt * 1e9)))
+                            self.start_ns + int(round(start * self.frame_dt * 1e9)),
+                            self.tracks.select(frames) if self.tracks is not None else None)

@@ -9,6 +9,10 @@ calibration and the scene declaration into what ``identify.fit`` needs:
   spaced (their spacing is the simulation's frame time) but for frames the stream lost: such a
   gap is simulated through with nothing observed (no loss term), with a warning, as long as
   ``MIN_OBSERVED_FRACTION`` of the frames remain;
+- surface tracks (``ObservedFrame.tracks``), with ``ProblemOptions.use_tracks``: those alive at
+  the first frame, each attached to its own object's nearest particles there
+  (``TrackAttachment``; a track farther than ``ATTACH_REACH`` particle spacings from them is
+  dropped, with a log line saying how many), followed over the later frames;
 - the simulator set-up: grid spacing twice the particle spacing, a domain around everything
   observed (and the floor), the declared ground (friction 0.5 to start with unless declared),
   gravity (declared or (0, 0, -9.81)), the declared effects with their declared values, and the
@@ -41,12 +45,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from mosiv_ros.identify.fit import Boundary, FitProblem
-from mosiv_ros.identify.observations import Observations, View
+from mosiv_ros.identify.observations import ATTACH_REACH, Observations, TrackAttachment, View
 from mosiv_ros.io.recording import Recording
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.recon.reconstruct import ObservedFrame
-from mosiv_ros.sim import Collider, ObjectModel, SimConfig, domain_around
+from mosiv_ros.recon.tracks import SurfaceTracks, TrackPoints
+from mosiv_ros.sim import Collider, ObjectModel, Particles, SimConfig, domain_around
 from mosiv_ros.sim.materials import FAMILY_PARAMS
 from mosiv_ros.simulation import declared_params, effects_of, ground_of, to_sim_particles
 
@@ -68,11 +73,13 @@ class ProblemOptions:
 
     ``families`` gives such objects' family by id; the others get ``default_family``.
     ``fit_density``: fit the undeclared densities' ratios (see the module docstring).
+    ``use_tracks``: attach the frames' surface tracks for the track loss (when they have any).
     """
 
     default_family: str = "elastic"
     margin: float = 0.1
     use_masks: bool = True
+    use_tracks: bool = True
     families: dict[int, str] = field(default_factory=dict)
     fit_density: bool = False
 
@@ -162,12 +169,13 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
         points[step] = [_points(frame, object_id) for object_id in ids]
         if options.use_masks:
             masks[step] = dict(frame.masks)
-    observations = Observations(frame_dt, points, list(ids), list(views), masks, stamps[0])
+    spacing = lifted.lattice_volume ** (1 / 3)
+    tracks = _attached_tracks(frames, steps, particles, ids, spacing) if options.use_tracks else None
+    observations = Observations(frame_dt, points, list(ids), list(views), masks, stamps[0], tracks)
     ground = ground_of(scene)
     if ground is not None and scene.ground.friction is None:
         free.append("ground.friction")
     everything = np.concatenate([particles.x] + [p for frame in points for p in frame if len(p)])
-    spacing = lifted.lattice_volume ** (1 / 3)
     dx = 2.0 * spacing
     lo, hi = domain_around(everything, dx, options.margin,
                            floor=ground.height if ground is not None else None)
@@ -188,6 +196,23 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
               "free: %s", len(objects), ", ".join(f"{o.name}: {o.family}" for o in objects),
               len(particles.x), n_frames, 1 / frame_dt, dx, ", ".join(free))
     return problem
+
+
+def _attached_tracks(frames: Sequence[ObservedFrame], steps: list[int], particles: Particles,
+                     ids: list[int], spacing: float) -> TrackAttachment | None:
+    """The frames' surface tracks attached to the particles (None: the frames have no tracks)."""
+    if all(f.tracks is None or not len(f.tracks.track_id) for f in frames):
+        return None
+    tracks = SurfaceTracks.of([f.tracks or TrackPoints.empty(f.stamp_ns) for f in frames])
+    # on the simulation's frames: a frame the stream lost has no track alive
+    positions = np.full((steps[-1] + 1, len(tracks.track_id), 3), np.nan)
+    confidence = np.zeros(positions.shape[:2])
+    positions[steps], confidence[steps] = tracks.positions, tracks.confidence
+    attachment, dropped = TrackAttachment.attach(positions, confidence, tracks.object_id, ids, particles.x,
+                                                 particles.object_index, spacing)
+    _LOG.info("surface tracks: %d attached to the particles, %d dropped (farther than %.1f particle "
+              "spacings from their object's particles)", attachment.n_tracks, dropped, ATTACH_REACH)
+    return attachment if attachment.n_tracks else None
 
 
 def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:

@@ -81,11 +81,13 @@ def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, s
 def problem_options(config: IdentifyConfig, views: Sequence[View]) -> ProblemOptions:
     """The problem options identify_node's parameters imply.
 
-    Masks only for a silhouette loss; an object whose family the scene leaves open gets the first
-    candidate family unless ``ProblemOptions.families`` says otherwise.
+    Masks only for a silhouette loss, tracks only for a track loss; an object whose family the
+    scene leaves open gets the first candidate family unless ``ProblemOptions.families`` says
+    otherwise.
     """
     return ProblemOptions(default_family=candidate_families(config.families)[0],
                           use_masks=config.loss.silhouette_weight > 0 and bool(views),
+                          use_tracks=config.loss.track_weight > 0,
                           fit_density=config.density_ratios)
 
 

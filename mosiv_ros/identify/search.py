@@ -8,7 +8,7 @@ rollouts of the first ``search.frames`` frames (0 = all):
   parameter is its prior range ``SEARCH_RANGES`` (a yield stress far above the true one leaves
   the loss flat, so no gradient finds the way down: the samples must land below it) and
   otherwise the initial value +- ``search_decades`` decades (scale parameters) or 2 logit units;
-- samples are scored by the objective Adam minimises (Chamfer and silhouette terms,
+- samples are scored by the objective Adam minimises (Chamfer, silhouette and track terms,
   ``batch_object_losses``). The best sample is kept; with per-object losses, so is the
   composite that takes each object's parameters from the sample that fits that object best
   (each object's loss depends mostly on its own parameters, so 32 samples search each object's
@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mosiv_ros.identify.losses import geometry_loss, silhouette_object_losses
+from mosiv_ros.identify.losses import geometry_loss, silhouette_object_losses, track_loss
 from mosiv_ros.sim import Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
 from mosiv_ros.simulation import OFFSET
@@ -79,7 +79,7 @@ class GlobalSearch:
                      frames: int | None = None, together: bool | None = None) -> np.ndarray:
         """The fit's loss of each row of ``candidates`` (coordinate vectors, (B, P)).
 
-        The same objective as Adam's (weighted Chamfer and silhouette terms, mean over frames),
+        The same objective as Adam's (weighted Chamfer, silhouette and track terms, mean over frames),
         without gradients.
 
         ``together`` (default: on a GPU): every row at the time step of the stiffest row, in one
@@ -187,7 +187,12 @@ class GlobalSearch:
             value, _, per = geometry_loss(traj[f, b, inside[b]].astype(np.float64),
                                           fit.index[inside[b]], obs.points[f],
                                           s.loss.per_object, obs.trees(f))
-            return s.loss.chamfer_weight * value, s.loss.chamfer_weight * per
+            value, per = s.loss.chamfer_weight * value, s.loss.chamfer_weight * per
+            if s.loss.track_weight > 0 and obs.tracks is not None:  # as Identifier.window_loss
+                tracked, _, shares = track_loss(traj[f, b].astype(np.float64), obs.tracks, f,
+                                                s.loss.track_scale, obs.n_objects)
+                value, per = value + s.loss.track_weight * tracked, per + s.loss.track_weight * shares
+            return value, per
 
         # KD-tree queries release the GIL: score candidates and frames in threads
         jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]

@@ -1,20 +1,22 @@
 """identify_node: observed geometry and particles in, per-object material estimates out (stage 3).
 
-Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set) and ``/mosiv/particles``
-(latched). Once it has the particles and ``window`` frames from the particles' frame on (with
-``window`` 0: at least two frames and ``idle_timeout`` seconds without a new one; with a window
-that the stream never fills: three times that), it runs the core's ``identify_objects`` in a
-worker thread (an object whose family the scene leaves out gets one of ``families``, chosen by
-held-out error first), reporting progress on ``/diagnostics`` and in its log, then publishes
-``/mosiv/material_estimates`` (diagnostic_msgs/DiagnosticArray, latched: one status per object
-named ``mosiv/<object>`` with hardware_id the object id, plus ``mosiv/scene``) and writes the
-estimates to ``output_yaml`` (which prediction_node also reads; written whole or not at all,
-and checked writable when the node starts, as ``close_loop_dir`` is). A failed fit is published
-as ERROR statuses saying why; so is an unexpected error in the worker (also an ERROR status on
-``/diagnostics``, and logged with its traceback). An empty particle cloud is logged and the node
-waits for a usable one; a frame set the stream lost is a gap the fit simulates through. On the
-topic graph the fit uses the 3D loss only: the silhouettes stay with the reconstruction
-(``mosiv run`` uses both).
+Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set), ``/mosiv/surface_tracks``
+(the surface tracks alive at each frame set, kept by stamp and joined to the frame set of the
+same stamp: the fit's track loss) and ``/mosiv/particles`` (latched). Once it has the particles
+and ``window`` frames from the particles' frame on (with ``window`` 0: at least two frames and
+``idle_timeout`` seconds without a new one; with a window that the stream never fills: three
+times that), it runs the core's ``identify_objects`` in a worker thread (an object whose family
+the scene leaves out gets one of ``families``, chosen by held-out error first), reporting
+progress on ``/diagnostics`` and in its log, then publishes ``/mosiv/material_estimates``
+(diagnostic_msgs/DiagnosticArray, latched: one status per object named ``mosiv/<object>`` with
+hardware_id the object id, plus ``mosiv/scene``) and writes the estimates to ``output_yaml``
+(which prediction_node also reads; written whole or not at all, and checked writable when the
+node starts, as ``close_loop_dir`` is). A failed fit is published as ERROR statuses saying why;
+so is an unexpected error in the worker (also an ERROR status on ``/diagnostics``, and logged
+with its traceback). An empty particle cloud is logged and the node waits for a usable one; a
+malformed cloud on any topic is logged and dropped; a frame set the stream lost is a gap the fit
+simulates through. On the topic graph the fit uses the 3D losses only (Chamfer and surface
+tracks): the silhouettes stay with the reconstruction (``mosiv run`` uses them too).
 
 With ``close_loop`` it then closes the loop on the same frames (``mosiv_ros.loop``: the last
 30 % of the window held out to judge candidate effects) and writes the report, the closed
@@ -27,6 +29,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+from dataclasses import replace
 
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
@@ -52,8 +55,10 @@ from mosiv_ros.nodes.common import (
     main_for,
 )
 from mosiv_ros.nodes.outputs import diagnostics_msg
+from mosiv_ros.nodes.reconstruction_node import TRACKS_TOPIC
 from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.recon.reconstruct import ObservedFrame
+from mosiv_ros.recon.tracks import TrackPoints
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.runtime import resolve_device
 
@@ -79,6 +84,7 @@ class IdentifyNode(Node):
             DiagnosticArray, "/mosiv/material_estimates", LATCHED_QOS)
         self.progress_pub = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self.frames: dict[int, ObservedFrame] = {}
+        self.tracks: dict[int, TrackPoints] = {}
         self.particles: LiftedParticles | None = None
         self.last_frame = time.monotonic()
         self.worker: threading.Thread | None = None
@@ -87,6 +93,10 @@ class IdentifyNode(Node):
             PointCloud2, "/mosiv/observed_objects",
             guarded(self, "/mosiv/observed_objects",
                     lambda msg: ObservedFrame.from_cloud(pointcloud_from_msg(msg)), self._on_observed), STREAM_QOS)
+        self.create_subscription(
+            PointCloud2, TRACKS_TOPIC,
+            guarded(self, TRACKS_TOPIC, lambda msg: TrackPoints.from_cloud(pointcloud_from_msg(msg)),
+                    self._on_tracks), STREAM_QOS)
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
             guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
@@ -100,13 +110,18 @@ class IdentifyNode(Node):
         self.frames[frame.stamp_ns] = frame
         self.last_frame = time.monotonic()
 
+    def _on_tracks(self, tracks: TrackPoints) -> None:
+        if self.worker is None:
+            self.tracks[tracks.stamp_ns] = tracks
+
     def _on_particles(self, particles: LiftedParticles) -> None:
         self.particles = particles
         self.get_logger().info(f"/mosiv/particles: {self.particles.summary()}")
 
     def _window(self) -> list[ObservedFrame]:
         start = self.particles.stamp_ns if self.particles is not None else 0
-        return [f for stamp, f in sorted(self.frames.items()) if stamp >= start]
+        return [replace(f, tracks=self.tracks.get(stamp)) for stamp, f in sorted(self.frames.items())
+                if stamp >= start]
 
     def _maybe_start(self) -> None:
         if self.worker is not None or self.particles is None:
@@ -121,7 +136,9 @@ class IdentifyNode(Node):
         elif window:
             self.get_logger().warning(f"the stream went quiet after {len(frames)} of the {window} "
                                       "frames of the window; fitting those")
-        self.get_logger().info(f"fitting {len(frames)} frames from stamp {frames[0].stamp_ns} ns")
+        tracked = sum(f.tracks is not None for f in frames)
+        self.get_logger().info(f"fitting {len(frames)} frames from stamp {frames[0].stamp_ns} ns "
+                               f"({tracked} with surface tracks)")
         self.worker = threading.Thread(target=self._fit, args=(frames,), daemon=True)
         self.worker.start()
 

@@ -64,6 +64,12 @@ class TrackPoints:
                           stamp_ns=self.stamp_ns)
 
     @classmethod
+    def empty(cls, stamp_ns: int) -> TrackPoints:
+        """No track at ``stamp_ns`` (a frame without tracks)."""
+        return cls(stamp_ns, np.zeros((0, 3)), np.zeros(0, np.uint16), np.zeros(0, np.uint32),
+                   np.zeros(0, np.float32))
+
+    @classmethod
     def from_cloud(cls, cloud: PointCloud) -> TrackPoints:
         """A ``/mosiv/surface_tracks`` cloud back; ValueError if it lacks a field."""
         missing = [name for name in TRACK_FIELDS if name not in cloud.fields]
