@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import warp as wp
 
 from mosiv_ros.sim.params import ParamSpec
 
@@ -37,39 +36,6 @@ GROUND_PARAMS = (
               "in the kernel)", size=3),
     ParamSpec("ground.friction", GROUND_FRICTION, 0.0, 5.0, "", "Coulomb coefficient of the ground"),
 )
-
-
-@wp.struct
-class GroundPlane:
-    """What the kernels read of the ground plane.
-
-    Every ``GROUND_PARAMS`` entry under its name without ``ground.``: the replicated parameter
-    array (height and friction one per batch, normal three); ``present`` is 0 without a ground.
-    """
-
-    height: wp.array(dtype=float)
-    normal: wp.array(dtype=float)
-    friction: wp.array(dtype=float)
-    present: int
-
-
-@wp.struct
-class Colliders:
-    """What the kernels read of the colliders.
-
-    Their ``count``; per collider c its shape code (``COLLIDER_SHAPES``), size and friction; per
-    substep s of a frame and collider c, row s * count + c: position, rotation (world from
-    collider), linear and angular velocity.
-    """
-
-    count: int
-    shape: wp.array(dtype=int)
-    size: wp.array(dtype=wp.vec3)
-    friction: wp.array(dtype=float)
-    pos: wp.array(dtype=wp.vec3)
-    rot: wp.array(dtype=wp.quat)
-    vel: wp.array(dtype=wp.vec3)
-    omega: wp.array(dtype=wp.vec3)
 
 
 @dataclass

@@ -9,11 +9,6 @@ Eq. 123) and APIC affine velocity fields C (Jiang et al. 2015). Layouts:
   node = (i * ny + j) * nz + l on a dense nx * ny * nz grid of spacing dx whose node (0, 0, 0) is
   at ``lo``.
 
-Arguments come bundled in ``wp.struct``s: ``Layout`` (the sizes and geometry above), ``State``
-(particles), ``Grid`` (one substep's grid), ``materials.Materials``, ``boundaries.GroundPlane``
-and ``boundaries.Colliders``. Differentiated arrays sit in them too: ``wp.Tape`` builds a struct
-argument's adjoint from its array fields' ``.grad``. docs/simulator.md maps the substep.
-
 **Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
 contact algorithm for the material point method"; Huang et al. 2011): each object scatters to its
 own field, so objects do not stick together as on a single grid. At a node where two or more
@@ -42,8 +37,8 @@ from __future__ import annotations
 
 import warp as wp
 
-from mosiv_ros.sim.boundaries import WALL_CELLS, Colliders, GroundPlane
-from mosiv_ros.sim.materials import Materials, kirchhoff_stress, return_mapping
+from mosiv_ros.sim.boundaries import WALL_CELLS
+from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
 from mosiv_ros.sim.params import param
 
 MAX_COLLIDERS = 2
@@ -57,59 +52,6 @@ CONTACT_MASS_FRACTION = wp.constant(1.0e-3)
 # simulations of one scene in different domains treated that layer differently (6 cm apart
 # after 8 frames of a bouncing ball).
 GROUND_SNAP = wp.constant(1.0e-3)
-
-
-@wp.struct
-class Layout:
-    """Sizes and geometry that the flat arrays are laid out by (see the module docstring).
-
-    ``obj`` is the object index of particle p (length N); ``normal_rank`` ranks the objects by
-    size (the largest highest) and ``ranked_object`` inverts it: contact normals come from the
-    largest object present at a node (``grid_update``).
-    """
-
-    n_particles: int
-    n_objects: int
-    n_nodes: int
-    dims: wp.vec3i
-    lo: wp.vec3
-    dx: float
-    obj: wp.array(dtype=int)
-    normal_rank: wp.array(dtype=int)
-    ranked_object: wp.array(dtype=int)
-
-
-@wp.struct
-class State:
-    """Particle state: position x, velocity v, affine field C, elastic b = F F^T (index b * N + p)."""
-
-    x: wp.array(dtype=wp.vec3)
-    v: wp.array(dtype=wp.vec3)
-    C: wp.array(dtype=wp.mat33)
-    b: wp.array(dtype=wp.mat33)
-
-
-@wp.struct
-class Grid:
-    """The grid of one substep.
-
-    Per field node ((b * K + k) * G + node): mass m, momentum p, the effects' accelerations a,
-    velocity v. Per node of a batch (b * G + node, only with several objects): the contact sums
-    of ``node_mass`` and ``contact_totals``. Per particle: the effects' extra Kirchhoff stress
-    ``tau`` (empty without stress effects).
-    """
-
-    m: wp.array(dtype=float)
-    p: wp.array(dtype=wp.vec3)
-    a: wp.array(dtype=wp.vec3)
-    v: wp.array(dtype=wp.vec3)
-    node_m: wp.array(dtype=float)
-    present_m: wp.array(dtype=float)
-    present_p: wp.array(dtype=wp.vec3)
-    present_mu: wp.array(dtype=float)
-    present_count: wp.array(dtype=int)
-    lead_rank: wp.array(dtype=int)
-    tau: wp.array(dtype=wp.mat33)
 
 
 @wp.func
@@ -154,60 +96,70 @@ def bspline_weights(fx: float):
 
 @wp.kernel
 def p2g(
-    state: State,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    b: wp.array(dtype=wp.mat33),
     volume: wp.array(dtype=float),
-    materials: Materials,
-    layout: Layout,
+    tau_extra: wp.array(dtype=wp.mat33),
+    obj: wp.array(dtype=int),
+    family: wp.array(dtype=int),
+    E: wp.array(dtype=float),
+    nu: wp.array(dtype=float),
+    yield_stress: wp.array(dtype=float),
+    friction_angle: wp.array(dtype=float),
+    bulk_modulus: wp.array(dtype=float),
+    viscosity: wp.array(dtype=float),
+    density: wp.array(dtype=float),
+    n_particles: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
     dt: float,
-    grid: Grid,
-    new: State,
+    b_out: wp.array(dtype=wp.mat33),
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
 ):
-    """Deformation update, return mapping, stress, and scatter of mass and momentum.
-
-    Reads ``state`` and the effects' ``grid.tau``; writes ``new.b`` and adds to ``grid.m``,
-    ``grid.p``.
-    """
+    """Deformation update, return mapping, stress, and scatter of mass and momentum."""
     i = wp.tid()
-    N = layout.n_particles
-    batch = i // N
-    k = layout.obj[i - batch * N]
-    q = batch * layout.n_objects + k
-    fam = materials.family[k]
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    q = batch * n_objects + k
+    fam = family[k]
     # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
-    f = wp.identity(n=3, dtype=float) + state.C[i] * dt
-    b_trial = f * state.b[i] * wp.transpose(f)
-    E_q = param(materials.E, q, i)
-    nu_q = param(materials.nu, q, i)
-    b_new = return_mapping(fam, b_trial, E_q, nu_q, param(materials.yield_stress, q, i),
-                           param(materials.friction_angle, q, i))
-    new.b[i] = b_new
-    tau = kirchhoff_stress(fam, b_new, state.C[i], E_q, nu_q, param(materials.bulk_modulus, q, i),
-                           param(materials.viscosity, q, i))
-    if grid.tau.shape[0] > 0:
-        tau = tau + grid.tau[i]
-    dx = layout.dx
-    lo = layout.lo
-    dims = layout.dims
+    f = wp.identity(n=3, dtype=float) + C[i] * dt
+    b_trial = f * b[i] * wp.transpose(f)
+    E_q = param(E, q, i)
+    nu_q = param(nu, q, i)
+    b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
+                           param(friction_angle, q, i))
+    b_out[i] = b_new
+    tau = kirchhoff_stress(fam, b_new, C[i], E_q, nu_q, param(bulk_modulus, q, i),
+                           param(viscosity, q, i))
+    if tau_extra.shape[0] > 0:
+        tau = tau + tau_extra[i]
     inv_dx = 1.0 / dx
     vol = volume[i]
-    mass = param(materials.density, q, i) * vol
+    mass = param(density, q, i) * vol
     # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
-    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + state.C[i] * mass
-    base = stencil_base(state.x[i], lo, inv_dx, dims)
-    fx = (state.x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C[i] * mass
+    base = stencil_base(x[i], lo, inv_dx, dims)
+    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
-    offset = q * layout.n_nodes
-    momentum = state.v[i] * mass
+    offset = q * n_nodes
+    momentum = v[i] * mass
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
                 dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                wp.atomic_add(grid.m, node, weight * mass)
-                wp.atomic_add(grid.p, node, weight * (momentum + affine * dpos))
+                wp.atomic_add(grid_m, node, weight * mass)
+                wp.atomic_add(grid_p, node, weight * (momentum + affine * dpos))
 
 
 @wp.func
@@ -228,12 +180,18 @@ def divide(a: wp.vec3, s: float):
 
 
 @wp.func
-def field_velocity(grid: Grid, index: int, dt: float):
+def field_velocity(
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    index: int,
+    dt: float,
+):
     """Grid velocity of one field at one node after the effects' accelerations: p/m + dt a."""
-    m = grid.m[index]
+    m = grid_m[index]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        vel = divide(grid.p[index], m) + grid.a[index] * dt
+        vel = divide(grid_p[index], m) + grid_a[index] * dt
     return vel
 
 
@@ -310,19 +268,36 @@ def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
 
 
 @wp.kernel
-def node_mass(grid: Grid, layout: Layout, box_lo: wp.vec3i, box_dims: wp.vec3i):
+def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int, dims: wp.vec3i,
+              box_lo: wp.vec3i, box_dims: wp.vec3i, node_m: wp.array(dtype=float)):
     """Total mass of all object fields at each node (contact pass 1, one thread per field node)."""
-    i = field_node(wp.tid(), box_lo, box_dims, layout.dims)
-    m = grid.m[i]
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
+    m = grid_m[i]
     if m > 0.0:
-        G = layout.n_nodes
-        batch = i // (layout.n_objects * G)
-        wp.atomic_add(grid.node_m, batch * G + i % G, m)
+        batch = i // (n_objects * n_nodes)
+        wp.atomic_add(node_m, batch * n_nodes + i % n_nodes, m)
 
 
 @wp.kernel
-def contact_totals(grid: Grid, materials: Materials, layout: Layout, box_lo: wp.vec3i,
-                   box_dims: wp.vec3i, dt: float):
+def contact_totals(
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    friction: wp.array(dtype=float),
+    normal_rank: wp.array(dtype=int),
+    node_m: wp.array(dtype=float),
+    n_nodes: int,
+    n_objects: int,
+    dims: wp.vec3i,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
+    dt: float,
+    present_m: wp.array(dtype=float),
+    present_p: wp.array(dtype=wp.vec3),
+    present_mu: wp.array(dtype=float),
+    present_count: wp.array(dtype=int),
+    lead_rank: wp.array(dtype=int),
+):
     """Sums over the fields present at each node (contact pass 2, one thread per field node).
 
     A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far
@@ -330,62 +305,80 @@ def contact_totals(grid: Grid, materials: Materials, layout: Layout, box_lo: wp.
     (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum after
     the effects (m v), friction-weighted mass (mu m), count, and the highest normal_rank.
     """
-    i = field_node(wp.tid(), box_lo, box_dims, layout.dims)
-    m = grid.m[i]
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
+    m = grid_m[i]
     if m <= 0.0:
         return
-    G = layout.n_nodes
-    K = layout.n_objects
-    batch = i // (K * G)
-    k = (i // G) % K
-    node = batch * G + i % G
-    if m > grid.node_m[node] * CONTACT_MASS_FRACTION:
-        wp.atomic_add(grid.present_m, node, m)
-        wp.atomic_add(grid.present_p, node, field_velocity(grid, i, dt) * m)
-        wp.atomic_add(grid.present_mu, node, param(materials.friction, batch * K + k, i) * m)
-        wp.atomic_add(grid.present_count, node, 1)
-        wp.atomic_max(grid.lead_rank, node, layout.normal_rank[k])
+    batch = i // (n_objects * n_nodes)
+    k = (i // n_nodes) % n_objects
+    node = batch * n_nodes + i % n_nodes
+    if m > node_m[node] * CONTACT_MASS_FRACTION:
+        wp.atomic_add(present_m, node, m)
+        wp.atomic_add(present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
+        wp.atomic_add(present_mu, node, param(friction, batch * n_objects + k, i) * m)
+        wp.atomic_add(present_count, node, 1)
+        wp.atomic_max(lead_rank, node, normal_rank[k])
 
 
 @wp.kernel
 def grid_update(
-    grid: Grid,
-    materials: Materials,
-    ground: GroundPlane,
-    colliders: Colliders,
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    friction: wp.array(dtype=float),
+    node_m: wp.array(dtype=float),
+    present_m: wp.array(dtype=float),
+    present_p: wp.array(dtype=wp.vec3),
+    present_mu: wp.array(dtype=float),
+    present_count: wp.array(dtype=int),
+    lead_rank: wp.array(dtype=int),
+    ranked_object: wp.array(dtype=int),
+    ground_height: wp.array(dtype=float),
+    ground_normal: wp.array(dtype=float),
+    ground_friction: wp.array(dtype=float),
+    has_ground: int,
+    collider_shape: wp.array(dtype=int),
+    collider_size: wp.array(dtype=wp.vec3),
+    collider_friction: wp.array(dtype=float),
+    collider_pos: wp.array(dtype=wp.vec3),
+    collider_rot: wp.array(dtype=wp.quat),
+    collider_vel: wp.array(dtype=wp.vec3),
+    collider_omega: wp.array(dtype=wp.vec3),
     collider_row: int,
-    layout: Layout,
+    n_colliders: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
     dt: float,
+    grid_v: wp.array(dtype=wp.vec3),
 ):
-    """Velocity ``grid.v`` of one object field at one node: effects, contact, ground, colliders, walls.
+    """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
 
-    The contact sums (``contact_totals``) are only read when there are several objects;
-    ``collider_row`` is the substep whose collider poses apply.
+    The contact sums (``contact_totals``) are only read when there are several objects.
     """
-    dims = layout.dims
     index = field_node(wp.tid(), box_lo, box_dims, dims)
-    m = grid.m[index]
+    m = grid_m[index]
     if m <= 0.0:
-        return  # no particle's stencil reads an empty field node; grid.v was zeroed
-    G = layout.n_nodes
-    K = layout.n_objects
-    dx = layout.dx
-    batch = index // (K * G)
-    k = (index // G) % K
-    node = index % G
+        return  # no particle's stencil reads an empty field node; grid_v was zeroed
+    batch = index // (n_objects * n_nodes)
+    k = (index // n_nodes) % n_objects
+    node = index % n_nodes
     i = node // (dims[1] * dims[2])
     j = (node // dims[2]) % dims[1]
     l = node % dims[2]
-    x_node = layout.lo + wp.vec3(float(i), float(j), float(l)) * dx
-    vel = field_velocity(grid, index, dt)
+    x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
+    vel = field_velocity(grid_m, grid_p, grid_a, index, dt)
 
-    if K > 1:
-        at = batch * G + node
-        if grid.present_count[at] > 1 and m > grid.node_m[at] * CONTACT_MASS_FRACTION:
-            lead = layout.ranked_object[grid.lead_rank[at]]
-            g_lead = mass_gradient(grid.m, (batch * K + lead) * G, i, j, l, dims, 1.0 / dx)
+    if n_objects > 1:
+        at = batch * n_nodes + node
+        if present_count[at] > 1 and m > node_m[at] * CONTACT_MASS_FRACTION:
+            lead = ranked_object[lead_rank[at]]
+            g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
+                                   1.0 / dx)
             g_len = wp.length(g_lead)
             if g_len > 0.0:
                 # outward normal of field k towards the others: into the lead object, or out of it
@@ -393,31 +386,31 @@ def grid_update(
                 n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
                 if k == lead:
                     n = -n
-                m_total = grid.present_m[at]
-                mu_k = param(materials.friction, batch * K + k, index)
-                mu_pair = 0.5 * (mu_k + (grid.present_mu[at] - mu_k * m) / (m_total - m))
-                v_cm = divide(grid.present_p[at], m_total)
+                m_total = present_m[at]
+                mu_k = param(friction, batch * n_objects + k, index)
+                mu_pair = 0.5 * (mu_k + (present_mu[at] - mu_k * m) / (m_total - m))
+                v_cm = divide(present_p[at], m_total)
                 rel = vel - v_cm
                 if wp.dot(rel, n) > 0.0:
                     # approaching: the others are a surface of outward normal -n
                     vel = v_cm + coulomb(rel, -n, mu_pair)
 
-    if ground.present != 0:
-        n_ground = wp.normalize(wp.vec3(param(ground.normal, 3 * batch, index),
-                                        param(ground.normal, 3 * batch + 1, index),
-                                        param(ground.normal, 3 * batch + 2, index)))
-        if wp.dot(n_ground, x_node) - param(ground.height, batch, index) < GROUND_SNAP * dx:
-            vel = coulomb(vel, n_ground, param(ground.friction, batch, index))
+    if has_ground != 0:
+        n_ground = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, index),
+                                        param(ground_normal, 3 * batch + 1, index),
+                                        param(ground_normal, 3 * batch + 2, index)))
+        if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
+            vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
     for c in range(MAX_COLLIDERS_W):
-        if c < colliders.count:
-            row = collider_row * colliders.count + c
-            r = x_node - colliders.pos[row]
-            local = wp.quat_rotate_inv(colliders.rot[row], r)
-            sd = collider_sdf(colliders.shape[c], colliders.size[c], local)
+        if c < n_colliders:
+            row = collider_row * n_colliders + c
+            r = x_node - collider_pos[row]
+            local = wp.quat_rotate_inv(collider_rot[row], r)
+            sd = collider_sdf(collider_shape[c], collider_size[c], local)
             if sd[0] < 0.0:
-                normal = wp.quat_rotate(colliders.rot[row], wp.vec3(sd[1], sd[2], sd[3]))
-                v_col = colliders.vel[row] + wp.cross(colliders.omega[row], r)
-                vel = v_col + coulomb(vel - v_col, normal, colliders.friction[c])
+                normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
+                v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
+                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
     # slip walls: no velocity into a domain face within WALL nodes of it
     vx = vel[0]
     vy = vel[1]
@@ -428,30 +421,42 @@ def grid_update(
         vy = 0.0
     if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
         vz = 0.0
-    grid.v[index] = wp.vec3(vx, vy, vz)
+    grid_v[index] = wp.vec3(vx, vy, vz)
 
 
 @wp.kernel
-def g2p(state: State, grid: Grid, ground: GroundPlane, layout: Layout, dt: float, new: State):
+def g2p(
+    x: wp.array(dtype=wp.vec3),
+    grid_v: wp.array(dtype=wp.vec3),
+    obj: wp.array(dtype=int),
+    ground_height: wp.array(dtype=float),
+    ground_normal: wp.array(dtype=float),
+    has_ground: int,
+    n_particles: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    dt: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    C_out: wp.array(dtype=wp.mat33),
+):
     """Gather velocity and affine field from the particle's own object field and advect.
 
-    Reads ``state.x`` and ``grid.v``; writes ``new.x``, ``new.v``, ``new.C``. The particle is
-    also kept on or above the ground plane.
+    The particle is also kept on or above the ground plane.
     """
     i = wp.tid()
-    N = layout.n_particles
-    batch = i // N
-    k = layout.obj[i - batch * N]
-    dx = layout.dx
-    lo = layout.lo
-    dims = layout.dims
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
     inv_dx = 1.0 / dx
-    base = stencil_base(state.x[i], lo, inv_dx, dims)
-    fx = (state.x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    base = stencil_base(x[i], lo, inv_dx, dims)
+    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
-    offset = (batch * layout.n_objects + k) * layout.n_nodes
+    offset = (batch * n_objects + k) * n_nodes
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
     for a in range(3):
@@ -459,44 +464,53 @@ def g2p(state: State, grid: Grid, ground: GroundPlane, layout: Layout, dt: float
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
                 dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
-                g_v = grid.v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
+                g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
-    x_new = state.x[i] + new_v * dt
-    if ground.present != 0:
+    x_new = x[i] + new_v * dt
+    if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
         # a substep below the plane is put back onto it and loses its velocity into it, so
         # soft materials (fluid, sand) cannot settle into the floor.
-        n = wp.normalize(wp.vec3(param(ground.normal, 3 * batch, i),
-                                 param(ground.normal, 3 * batch + 1, i),
-                                 param(ground.normal, 3 * batch + 2, i)))
-        phi = wp.dot(n, x_new) - param(ground.height, batch, i)
+        n = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, i),
+                                 param(ground_normal, 3 * batch + 1, i),
+                                 param(ground_normal, 3 * batch + 2, i)))
+        phi = wp.dot(n, x_new) - param(ground_height, batch, i)
         if phi < 0.0:
             x_new = x_new - n * phi
             vn = wp.dot(new_v, n)
             if vn < 0.0:
                 new_v = new_v - n * vn
-    new.v[i] = new_v
-    new.C[i] = new_C
-    new.x[i] = x_new
+    v_out[i] = new_v
+    C_out[i] = new_C
+    x_out[i] = x_new
 
 
 @wp.kernel
-def check_state(state: State, layout: Layout, hi: wp.vec3, stats: wp.array(dtype=float)):
+def check_state(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    b: wp.array(dtype=wp.mat33),
+    obj: wp.array(dtype=int),
+    n_particles: int,
+    n_objects: int,
+    lo: wp.vec3,
+    hi: wp.vec3,
+    stats: wp.array(dtype=float),
+):
     """Per (batch, object): [max speed, non-finite count, outside-domain count, min det b]."""
     i = wp.tid()
-    batch = i // layout.n_particles
-    k = layout.obj[i - batch * layout.n_particles]
-    row = 4 * (batch * layout.n_objects + k)
-    speed = wp.length(state.v[i])
-    det = wp.determinant(state.b[i])
-    finite = wp.isfinite(state.x[i]) and wp.isfinite(state.v[i]) and wp.isfinite(det)
+    batch = i // n_particles
+    k = obj[i - batch * n_particles]
+    row = 4 * (batch * n_objects + k)
+    speed = wp.length(v[i])
+    det = wp.determinant(b[i])
+    finite = wp.isfinite(x[i]) and wp.isfinite(v[i]) and wp.isfinite(det)
     if finite:
         wp.atomic_max(stats, row, speed)
         wp.atomic_min(stats, row + 3, det)
-        p = state.x[i]
-        lo = layout.lo
+        p = x[i]
         if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
             wp.atomic_add(stats, row + 2, 1.0)
     else:

@@ -62,25 +62,6 @@ MATERIAL_PARAMS = (
 )
 MATERIAL_PARAM_NAMES = tuple(spec.name for spec in MATERIAL_PARAMS)
 
-
-@wp.struct
-class Materials:
-    """What the kernels read of the objects' materials.
-
-    Each object's family code (``FAMILY_CODES``), and every ``MATERIAL_PARAMS`` entry under its
-    own name: the replicated array kernels read with ``param`` (layout [batch][object]).
-    """
-
-    family: wp.array(dtype=int)
-    E: wp.array(dtype=float)
-    nu: wp.array(dtype=float)
-    density: wp.array(dtype=float)
-    yield_stress: wp.array(dtype=float)
-    friction_angle: wp.array(dtype=float)
-    bulk_modulus: wp.array(dtype=float)
-    viscosity: wp.array(dtype=float)
-    friction: wp.array(dtype=float)
-
 FRICTION_ANGLE_DEG = "friction_angle_deg"
 """A friction angle as users give it, in degrees (the simulator's ``friction_angle`` is radians)."""
 

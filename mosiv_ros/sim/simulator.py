@@ -35,18 +35,10 @@ import numpy as np
 import warp as wp
 
 from mosiv_ros.sim import kernels
-from mosiv_ros.sim.boundaries import (
-    COLLIDER_SHAPES,
-    GROUND_PARAMS,
-    WALL_CELLS,
-    Collider,
-    Colliders,
-    Ground,
-    GroundPlane,
-)
+from mosiv_ros.sim.boundaries import COLLIDER_SHAPES, GROUND_PARAMS, WALL_CELLS, Collider, Ground
 from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
-from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, Materials, wave_speed
+from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
 from mosiv_ros.sim.params import Parameters
 from mosiv_ros.sim.runtime import load_modules, resolve_device
 
@@ -168,34 +160,14 @@ class Gradients:
     volume: np.ndarray
 
 
-def _bundle(struct, **fields: object):
-    """An instance of the ``wp.struct`` ``struct`` holding ``fields``, which must be all of its fields.
-
-    A field left out would reach the kernels as a null array or a zero; a launch reads the
-    instance's values when it is made (and a tape's backward again), so an instance a launch
-    has used is never changed afterwards: a changed one is a new instance.
-    """
-    names = set(struct.vars)
-    if set(fields) != names:
-        raise ValueError(f"{struct.key}: fields {sorted(fields)} given, {sorted(names)} expected")
-    instance = struct()
-    for name, value in fields.items():
-        setattr(instance, name, value)
-    return instance
-
-
 class _State:
-    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T).
-
-    ``struct`` bundles them for the kernels (``kernels.State``).
-    """
+    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T)."""
 
     def __init__(self, n: int, device: str, requires_grad: bool) -> None:
         self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
         self.v = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
         self.C = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
         self.b = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
-        self.struct = _bundle(kernels.State, x=self.x, v=self.v, C=self.C, b=self.b)
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -210,8 +182,7 @@ class _Grid:
     """Grid arrays of one substep.
 
     Per (batch, object, node) fields, per (batch, node) contact sums (only with several
-    objects), and the effects' per-particle stress; ``struct`` bundles them for the kernels
-    (``kernels.Grid``).
+    objects), and the effects' per-particle stress.
     """
 
     def __init__(self, n_batch: int, n_objects: int, n_nodes: int, n_particles: int, stress: bool,
@@ -233,7 +204,6 @@ class _Grid:
         self.present_mu = zeros(n_contact, float)
         self.present_count = zeros(n_contact, int, grad=False)
         self.lead_rank = zeros(n_contact, int, grad=False)
-        self.struct = _bundle(kernels.Grid, **{name: getattr(self, name) for name in kernels.Grid.vars})
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -308,23 +278,13 @@ class Simulator:
 
         d = self.device
         self.obj = wp.array(particles.object_index, dtype=int, device=d)
+        self.family = wp.array([FAMILY_CODES[o.family] for o in self.objects], dtype=int, device=d)
         # contact normals come from the larger object of a pair (kernels.grid_update)
         sizes = [particles.volume[particles.object_index == k].sum() for k in range(self.n_objects)]
         rank = np.empty(self.n_objects, dtype=np.int32)
         rank[np.argsort(sizes, kind="stable")] = np.arange(self.n_objects)
-        self._layout = _bundle(
-            kernels.Layout, n_particles=self.n_particles, n_objects=self.n_objects,
-            n_nodes=self.n_nodes, dims=wp.vec3i(*self.dims), lo=wp.vec3(*self.lo), dx=self.dx,
-            obj=self.obj, normal_rank=wp.array(rank, dtype=int, device=d),
-            ranked_object=wp.array(np.argsort(rank), dtype=int, device=d))
-        # the parameters' replicas are the same arrays for the simulator's life
-        self._materials = _bundle(
-            Materials, family=wp.array([FAMILY_CODES[o.family] for o in self.objects], dtype=int,
-                                       device=d),
-            **{spec.name: self.params[spec.name] for spec in MATERIAL_PARAMS})
-        self._ground = _bundle(
-            GroundPlane, present=int(config.ground is not None),
-            **{spec.name.removeprefix("ground."): self.params[spec.name] for spec in GROUND_PARAMS})
+        self.normal_rank = wp.array(rank, dtype=int, device=d)
+        self.ranked_object = wp.array(np.argsort(rank), dtype=int, device=d)
         self.x0 = wp.array(particles.x.astype(np.float32), dtype=wp.vec3, device=d)
         self.volume = wp.zeros(self.n_batch * self.n_particles, dtype=float, device=d,
                                requires_grad=True)
@@ -385,12 +345,10 @@ class Simulator:
         d, colliders = self.device, self.config.colliders
         shapes = [COLLIDER_SHAPES[c.shape] for c in colliders] or [0]
         sizes = [tuple(c.size) + (0.0,) * (3 - len(c.size)) for c in colliders] or [(0.0,) * 3]
-        self._collider_fixed = {
-            "count": len(colliders),
-            "shape": wp.array(shapes, dtype=int, device=d),
-            "size": wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d),
-            "friction": wp.array([c.friction for c in colliders] or [0.0], dtype=float, device=d),
-        }
+        self._collider_shape = wp.array(shapes, dtype=int, device=d)
+        self._collider_size = wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d)
+        self._collider_friction = wp.array([c.friction for c in colliders] or [0.0], dtype=float,
+                                           device=d)
         self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
@@ -399,10 +357,10 @@ class Simulator:
         rows = n_sub * len(colliders) if colliders else 1
         if rows != self._collider_rows:
             d = self.device
-            self._colliders = _bundle(
-                Colliders, **self._collider_fixed,
-                pos=wp.zeros(rows, dtype=wp.vec3, device=d), rot=wp.zeros(rows, dtype=wp.quat, device=d),
-                vel=wp.zeros(rows, dtype=wp.vec3, device=d), omega=wp.zeros(rows, dtype=wp.vec3, device=d))
+            self._collider_pos = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._collider_rot = wp.zeros(rows, dtype=wp.quat, device=d)
+            self._collider_vel = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._collider_omega = wp.zeros(rows, dtype=wp.vec3, device=d)
             self._collider_rows = rows
             self._forget_graphs()
         if not colliders:
@@ -417,10 +375,10 @@ class Simulator:
                 t = t0 + s * dt
                 pos[s, c], rot[s, c] = collider.pose(t)
                 vel[s, c], omega[s, c] = collider.velocity(t)
-        self._colliders.pos.assign(pos.reshape(-1, 3))
-        self._colliders.rot.assign(rot.reshape(-1, 4))
-        self._colliders.vel.assign(vel.reshape(-1, 3))
-        self._colliders.omega.assign(omega.reshape(-1, 3))
+        self._collider_pos.assign(pos.reshape(-1, 3))
+        self._collider_rot.assign(rot.reshape(-1, 4))
+        self._collider_vel.assign(vel.reshape(-1, 3))
+        self._collider_omega.assign(omega.reshape(-1, 3))
 
     def set_initial_velocity(self, v: np.ndarray) -> None:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
@@ -478,12 +436,10 @@ class Simulator:
         return {s.name: self.params[f"{effect.name}.{s.name}"] for s in effect.params}
 
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float) -> None:
-        """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
-
-        ``row`` is the substep's index in its frame (which collider poses apply).
-        """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
-        layout = self._layout
+        p = self.params
+        dims = wp.vec3i(*self.dims)
+        lo = wp.vec3(*self.lo)
         grid.zero()
         if self._stress:
             view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
@@ -491,22 +447,38 @@ class Simulator:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
         wp.launch(kernels.p2g, dim=B * N, device=d, inputs=[
-            src.struct, self.volume, self._materials, layout, dt, grid.struct, dst.struct])
+            src.x, src.v, src.C, src.b, self.volume, grid.tau, self.obj, self.family,
+            p["E"], p["nu"], p["yield_stress"], p["friction_angle"], p["bulk_modulus"],
+            p["viscosity"], p["density"], N, K, G, dims, lo, self.dx, dt,
+        ], outputs=[dst.b, grid.m, grid.p])
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d)
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
         box_lo, box_dims = self._active_box(src)
-        box = [wp.vec3i(*box_lo), wp.vec3i(*box_dims)]
         n_box = B * K * int(np.prod(box_dims))
+        box = [dims, wp.vec3i(*box_lo), wp.vec3i(*box_dims)]
         if K > 1:
-            wp.launch(kernels.node_mass, dim=n_box, device=d, inputs=[grid.struct, layout, *box])
-            wp.launch(kernels.contact_totals, dim=n_box, device=d,
-                      inputs=[grid.struct, self._materials, layout, *box, dt])
+            wp.launch(kernels.node_mass, dim=n_box, device=d, inputs=[grid.m, G, K, *box],
+                      outputs=[grid.node_m])
+            wp.launch(kernels.contact_totals, dim=n_box, device=d, inputs=[
+                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, *box,
+                dt,
+            ], outputs=[grid.present_m, grid.present_p, grid.present_mu, grid.present_count,
+                        grid.lead_rank])
         wp.launch(kernels.grid_update, dim=n_box, device=d, inputs=[
-            grid.struct, self._materials, self._ground, self._colliders, row, layout, *box, dt])
-        wp.launch(kernels.g2p, dim=B * N, device=d,
-                  inputs=[src.struct, grid.struct, self._ground, layout, dt, dst.struct])
+            grid.m, grid.p, grid.a, p["friction"], grid.node_m, grid.present_m, grid.present_p,
+            grid.present_mu, grid.present_count, grid.lead_rank, self.ranked_object,
+            p["ground.height"], p["ground.normal"], p["ground.friction"],
+            int(self.config.ground is not None),
+            self._collider_shape, self._collider_size, self._collider_friction,
+            self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
+            row, len(self.config.colliders), K, G, *box, lo, self.dx, dt,
+        ], outputs=[grid.v])
+        wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
+            src.x, grid.v, self.obj, p["ground.height"], p["ground.normal"],
+            int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
+        ], outputs=[dst.x, dst.v, dst.C])
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
@@ -599,7 +571,8 @@ class Simulator:
         stats = wp.array(np.tile([0.0, 0.0, 0.0, np.inf], self.n_batch * K).astype(np.float32),
                          dtype=float, device=self.device)
         wp.launch(kernels.check_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[state.struct, self._layout, wp.vec3(*self.hi), stats])
+                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, K,
+                          wp.vec3(*self.lo), wp.vec3(*self.hi)], outputs=[stats])
         stats = stats.numpy().reshape(self.n_batch, K, 4)
         limit = self.dx / dt
         for b in range(self.n_batch):
