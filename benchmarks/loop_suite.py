@@ -32,7 +32,7 @@ from mosiv_ros.config import HOLDOUT
 from mosiv_ros.io.bag import find_bags
 from mosiv_ros.io.files import plain
 from mosiv_ros.loop.closure import LoopConfig
-from mosiv_ros.loop.report import close_loop
+from mosiv_ros.loop.report import close_loop, mm
 from mosiv_ros.loop.truth import expected, judge
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
@@ -70,8 +70,8 @@ def markdown(results: list[dict]) -> str:
             continue
         errors = "; ".join(f"{k} {v:+.3g}" for effect in r["value_errors"].values() for k, v in effect.items())
         lines.append(f"| {r['recording']} | {', '.join(r['expected']) or 'none'} | {r['verdict']} | "
-                     f"{', '.join(r['named']) or 'nothing'} | {errors} | {r['held_out_before'] * 1e3:.1f} -> "
-                     f"{r['held_out_after'] * 1e3:.1f} | {_mm(r['held_out_control'])} | {_mm(r['held_out_floor'])} | "
+                     f"{', '.join(r['named']) or 'nothing'} | {errors} | {mm(r['held_out_before'], 1)} -> "
+                     f"{mm(r['held_out_after'], 1)} | {mm(r['held_out_control'], 1)} | {mm(r['held_out_floor'], 1)} | "
                      f"{r['outcome']} | {r['seconds']:.0f} |")
     counts = Counter((", ".join(r["expected"]) or "none", ", ".join(r["named"]) or "nothing")
                      for r in results if "error" not in r)
@@ -83,10 +83,6 @@ def markdown(results: list[dict]) -> str:
     tally = Counter(r.get("outcome", "error") for r in results)
     lines += ["", ", ".join(f"{k}: {v}" for k, v in sorted(tally.items()))]
     return "\n".join(lines) + "\n"
-
-
-def _mm(metres: float | None) -> str:
-    return "" if metres is None else f"{metres * 1e3:.1f}"
 
 
 def main() -> int:

@@ -45,7 +45,7 @@ from mosiv_ros.config import BatchConfig
 from mosiv_ros.io.bag import find_bags
 from mosiv_ros.io.files import OutputDir, plain, write_text
 from mosiv_ros.loop.closure import LoopConfig
-from mosiv_ros.loop.report import close_loop_prepared
+from mosiv_ros.loop.report import close_loop_prepared, mm
 from mosiv_ros.loop.truth import judge
 from mosiv_ros.pipeline import run_prepared
 from mosiv_ros.prepare import RunConfig, prepare
@@ -317,10 +317,6 @@ def write_suite_report(out: OutputDir, entries: list[dict], total: int, interrup
     return report
 
 
-def _mm(value: float | None) -> str:
-    return "" if value is None else f"{value * 1e3:.2f}"
-
-
 def markdown(report: dict, plot: str | None) -> str:
     """The suite report for a person to read."""
     lines = [f"# mosiv batch: {report['recordings']} recordings", "",
@@ -336,7 +332,7 @@ def markdown(report: dict, plot: str | None) -> str:
         dex = "" if row["scale_error_dex"] is None else f"{row['scale_error_dex']:.2f}"
         outcomes = ", ".join(f"{k} {v}" for k, v in row.get("loop_outcomes", {}).items())
         lines.append(f"| {pair} | {row['recordings']} | " + " | ".join(
-            _mm(row[f"{key}_{part}"]) for key in ("cd", "emd", "cd_truth") for part in PARTS)
+            mm(row[f"{key}_{part}"]) for key in ("cd", "emd", "cd_truth") for part in PARTS)
             + f" | {dex} | {outcomes} |")
     lines += ["", "## Per recording", "",
               "| recording | pair | CD observed | CD future | EMD observed | EMD future | scale params log10 "
@@ -348,13 +344,13 @@ def markdown(report: dict, plot: str | None) -> str:
             lines.append(f"| {entry['recording']} | | failed: {entry['error'][:120]} | | | | | | {seconds} |")
             continue
         scores = entry["scores"]
-        cells = [_mm(scores.get(part, {}).get(key)) for key in ("cd", "emd") for part in PARTS]
+        cells = [mm(scores.get(part, {}).get(key)) for key in ("cd", "emd") for part in PARTS]
         dex = "" if entry.get("scale_error_dex") is None else f"{entry['scale_error_dex']:.2f}"
         loop = entry.get("loop")
         verdict = "" if loop is None else (
             f"{loop['verdict']}, {', '.join(loop['named']) or 'nothing'}"
             + (f" ({loop['outcome']})" if "outcome" in loop else "")
-            + f", {_mm(loop['held_out_before'])} -> {_mm(loop['held_out_after'])}")
+            + f", {mm(loop['held_out_before'])} -> {mm(loop['held_out_after'])}")
         lines.append(f"| {entry['recording']} | {entry['pair']} | " + " | ".join(cells)
                      + f" | {dex} | {verdict} | {seconds} |")
     if plot:

@@ -237,15 +237,15 @@ def _markdown(report: dict, plots: list[str]) -> str:
               "| --- | --- | --- | --- | --- | --- | --- |"]
     for label, model in (("before", before), ("after", after)):
         metrics = model.get("metrics", {})
-        cd = [_mm(metrics.get(part, {}).get("cd")) for part in ("observed", "future")]
+        cd = [mm(metrics.get(part, {}).get("cd")) for part in ("observed", "future")]
         info = model.get("information", {})
-        lines.append(f"| {label} | {_mm(model['centroid_error']['fitted'])} | "
-                     f"{_mm(model['centroid_error']['held_out'])} | {cd[0]} | {cd[1]} | "
+        lines.append(f"| {label} | {mm(model['centroid_error']['fitted'])} | "
+                     f"{mm(model['centroid_error']['held_out'])} | {cd[0]} | {cd[1]} | "
                      f"{_num(info.get('aic'))} | {_num(info.get('bic'))} |")
     floor = report.get("reconstruction_floor")
     if floor:
-        lines.append(f"| the truth (the recorder's particles) | {_mm(floor['fitted'])} | "
-                     f"{_mm(floor['held_out'])} | | | | |")
+        lines.append(f"| the truth (the recorder's particles) | {mm(floor['fitted'])} | "
+                     f"{mm(floor['held_out'])} | | | | |")
         lines += ["", "The truth's row is the reconstruction's own centroid error: what a model leaves "
                   "above it is the model's."]
     if "parameter_errors" in before:
@@ -268,13 +268,13 @@ def _markdown(report: dict, plots: list[str]) -> str:
         control = round_.get("control")
         if control is not None:
             lines.append(f"Control (the model refitted with a candidate's budget, no new effect): held-out "
-                         f"{_mm(control['centroid_error']['held_out'])} mm, AIC "
+                         f"{mm(control['centroid_error']['held_out'])} mm, AIC "
                          f"{_num(control['information'].get('aic'))}.")
         lines += ["", "| candidate | explained | free flight | first estimate | refit held-out (mm) | "
                   "refit AIC | ratio | accepted | note |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
         for r in round_["ranking"]:
             estimate = ", ".join(f"{k} {v:.3g}" for k, v in r["estimate"].items())
-            refit = _mm(r["refit_held_out_error"]) if r["refit_held_out_error"] is not None else ""
+            refit = mm(r["refit_held_out_error"]) if r["refit_held_out_error"] is not None else ""
             ratio = f"x{r['ratio']:.2f} (<= x{r['threshold']:.2f})" if r["refit_held_out_error"] is not None else ""
             flown = "" if r["free_flight"] is None else f"{r['free_flight']['explained']:.2f}"
             aic = _num((r["refit_information"] or {}).get("aic"))
@@ -297,12 +297,13 @@ def _point(x) -> str:
     return "(" + ", ".join(f"{v:.3f}" for v in x) + ") m"
 
 
-def _mm(value) -> str:
-    return _num(value, 1e3)
+def mm(metres: float | None, digits: int = 2) -> str:
+    """A length in metres as millimetres for a table; empty where there is none (None, NaN)."""
+    return _num(metres, 1e3, digits)
 
 
-def _num(value, scale: float = 1.0) -> str:
-    return "" if value is None or not np.isfinite(value) else f"{value * scale:.2f}"
+def _num(value, scale: float = 1.0, digits: int = 2) -> str:
+    return "" if value is None or not np.isfinite(value) else f"{value * scale:.{digits}f}"
 
 
 def _plots(out: OutputDir, result: LoopResult) -> list[Path]:
