@@ -40,6 +40,7 @@ import warp as wp
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
 from mosiv_ros.sim.params import param
+from mosiv_ros.sim.warp_reduce import gather, run_start, scatter
 
 MAX_COLLIDERS = 2
 MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
@@ -152,14 +153,15 @@ def p2g(
     wz = bspline_weights(fx[2])
     offset = q * n_nodes
     momentum = v[i] * mass
+    # neighbouring lanes with the same stencil add once per node (sim.warp_reduce)
+    run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
                 dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                wp.atomic_add(grid_m, node, weight * mass)
-                wp.atomic_add(grid_p, node, weight * (momentum + affine * dpos))
+                scatter(grid_m, grid_p, node, run, weight * mass, weight * (momentum + affine * dpos))
 
 
 @wp.func
@@ -459,12 +461,14 @@ def g2p(
     offset = (batch * n_objects + k) * n_nodes
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
+    # the adjoint adds to grid_v's once per node for neighbouring lanes (sim.warp_reduce)
+    run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
                 dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
-                g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
+                g_v = gather(grid_v, offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims), run)
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)

@@ -1,0 +1,116 @@
+"""The warp-aggregated scatter and gather (sim.warp_reduce) against plain sums.
+
+On the CPU these are the plain atomics they replace; with ``MOSIV_TEST_DEVICE=cuda:0`` the same
+checks exercise the warp shuffles: runs of equal keys, equal keys that are not neighbours, a
+partial last warp, and lanes that skip the call (a divergent warp).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from sim_scenes import DEVICE
+
+from mosiv_ros.sim.runtime import load_modules
+from mosiv_ros.sim.warp_reduce import gather, run_start, scatter
+
+
+@wp.kernel
+def _scatter_kernel(keys: wp.array(dtype=int), values: wp.array(dtype=float), skip: int,
+                    grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    if i % wp.max(skip, 1) == 0 and skip > 0:  # (Warp evaluates both operands of ``and``)
+        return  # these lanes leave the warp before the call
+    key = keys[i]
+    run = run_start(key)
+    m = values[i]
+    for offset in range(2):  # two nodes per lane, as P2G's stencil has 27
+        scatter(grid_m, grid_p, 2 * key + offset, run, m * float(offset + 1),
+                wp.vec3(m, -2.0 * m, float(i)))
+
+
+@wp.kernel
+def _gather_kernel(keys: wp.array(dtype=int), weights: wp.array(dtype=float),
+                   grid_v: wp.array(dtype=wp.vec3), out: wp.array(dtype=float)):
+    i = wp.tid()
+    key = keys[i]
+    run = run_start(key)
+    v = gather(grid_v, key, run)
+    out[i] = weights[i] * (v[0] + 2.0 * v[1] - v[2])
+
+
+def _keys(n: int, rng: np.random.Generator) -> np.ndarray:
+    """Runs of 1 to 9 equal keys, some keys coming back later (not neighbours)."""
+    keys = np.repeat(rng.integers(0, 40, size=n), rng.integers(1, 10, size=n))[:n]
+    return keys.astype(np.int32)
+
+
+@pytest.mark.parametrize("n, skip", [(1000, 0), (77, 0), (1000, 3)])
+def test_scatter_sums_what_every_lane_adds(n, skip):
+    load_modules(DEVICE, [__name__])
+    rng = np.random.default_rng(n + skip)
+    keys = _keys(n, rng)
+    values = rng.normal(size=n).astype(np.float32)
+    grid_m = wp.zeros(80, dtype=float, device=DEVICE)
+    grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE)
+    wp.launch(_scatter_kernel, dim=n, inputs=[wp.array(keys, dtype=int, device=DEVICE),
+                                              wp.array(values, dtype=float, device=DEVICE), skip],
+              outputs=[grid_m, grid_p], device=DEVICE)
+    lanes = np.arange(n)
+    kept = lanes % skip != 0 if skip else np.ones(n, dtype=bool)
+    want_m, want_p = np.zeros(80), np.zeros((80, 3))
+    for offset in range(2):
+        node = 2 * keys[kept] + offset
+        np.add.at(want_m, node, values[kept] * (offset + 1))
+        np.add.at(want_p, node, np.stack([values, -2 * values, lanes], axis=1)[kept])
+    assert np.allclose(grid_m.numpy(), want_m, rtol=1e-5, atol=1e-5)
+    assert np.allclose(grid_p.numpy(), want_p, rtol=1e-5, atol=1e-3)
+
+
+def test_scatter_gradient_is_the_node_gradient_of_each_lane():
+    load_modules(DEVICE, [__name__])
+    n = 300
+    rng = np.random.default_rng(1)
+    keys = wp.array(_keys(n, rng), dtype=int, device=DEVICE)
+    values = wp.array(rng.normal(size=n).astype(np.float32), dtype=float, device=DEVICE,
+                      requires_grad=True)
+    grid_m = wp.zeros(80, dtype=float, device=DEVICE, requires_grad=True)
+    grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_scatter_kernel, dim=n, inputs=[keys, values, 0], outputs=[grid_m, grid_p],
+                  device=DEVICE)
+    seed_m = rng.normal(size=80).astype(np.float32)
+    seed_p = rng.normal(size=(80, 3)).astype(np.float32)
+    grid_m.grad.assign(seed_m)
+    grid_p.grad.assign(seed_p)
+    tape.backward()
+    k = keys.numpy()
+    # d/dm of sum over offsets of seed_m[2k + o] (o + 1) m + seed_p[2k + o] . (m, -2m, i)
+    want = sum(seed_m[2 * k + o] * (o + 1) + seed_p[2 * k + o, 0] - 2 * seed_p[2 * k + o, 1]
+               for o in range(2))
+    assert np.allclose(values.grad.numpy(), want, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("n", [1000, 45])
+def test_gather_reads_the_node_and_sums_the_lanes_gradients_into_it(n):
+    load_modules(DEVICE, [__name__])
+    rng = np.random.default_rng(n)
+    keys = _keys(n, rng)
+    weights = rng.normal(size=n).astype(np.float32)
+    field = rng.normal(size=(40, 3)).astype(np.float32)
+    grid_v = wp.array(field, dtype=wp.vec3, device=DEVICE, requires_grad=True)
+    out = wp.zeros(n, dtype=float, device=DEVICE, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_gather_kernel, dim=n, inputs=[wp.array(keys, dtype=int, device=DEVICE),
+                                                 wp.array(weights, dtype=float, device=DEVICE),
+                                                 grid_v], outputs=[out], device=DEVICE)
+    assert np.allclose(out.numpy(), weights * (field[keys] @ [1.0, 2.0, -1.0]), rtol=1e-5,
+                       atol=1e-5)
+    out.grad.fill_(1.0)
+    tape.backward()
+    want = np.zeros((40, 3))
+    np.add.at(want, keys, weights[:, None] * np.array([1.0, 2.0, -1.0]))
+    assert np.allclose(grid_v.grad.numpy(), want, rtol=1e-5, atol=1e-4)
