@@ -367,10 +367,10 @@ def test_boundary_offset_gradient_matches_finite_differences():
     truth = scene([a, b], objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.4), effects=[],
                   velocities=[(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0)])
     traj = truth.rollout(6)[:, 0].astype(np.float64)
-    index = truth.obj.numpy()
+    index = truth.object_index()
     obs = Observations(truth.config.frame_dt, [[traj[f][index == k] for k in (0, 1)] for f in range(7)],
                        object_ids=[1, 2])
-    x = truth.x0.numpy().astype(np.float64)
+    x = truth.initial_positions().astype(np.float64)
     centres = np.array([[0.2, 0.2, 0.2], [0.32, 0.2, 0.2]])[index]
     # the outer shell 0.3 mm outside the boundary at offset -1 mm (18 % of a particle's volume)
     radius = np.linalg.norm(x - centres, axis=1)
@@ -411,10 +411,10 @@ def test_fit_recovers_a_density_ratio_from_a_head_on_collision():
     truth = scene([a, b], models, dx=dx, lo=(0, 0, 0), hi=(0.7, 0.4, 0.4), effects=[],
                   velocities=[(1.5, 0.0, 0.0), (0.0, 0.0, 0.0)])
     traj = truth.rollout(frames)[:, 0].astype(np.float64)
-    index = truth.obj.numpy()
+    index = truth.object_index()
     obs = Observations(truth.config.frame_dt, [[traj[f][index == k] for k in (0, 1)]
                                                for f in range(frames + 1)], object_ids=[1, 2])
-    particles = Particles(x=truth.x0.numpy().astype(np.float64), volume=(dx / 2) ** 3, object_index=index)
+    particles = Particles(x=truth.initial_positions().astype(np.float64), volume=(dx / 2) ** 3, object_index=index)
     guess = [ObjectModel("a", "elastic", {"E": 1e4, "density": 400.0}), ObjectModel("b", "elastic", {"E": 1e4})]
     problem = FitProblem(guess, particles, obs, truth.config, ["density"],
                          fixed={"a": {"E", "density"}, "b": {"E"}})

@@ -64,7 +64,7 @@ def test_non_finite_initial_velocities_and_volumes_are_refused():
     with pytest.raises(ParameterError, match="volumes must be finite"):
         sim.set_volume(np.full(sim.n_particles, np.inf))
     sim.set_initial_velocity(np.ones(3))  # a finite one is taken, for every particle
-    assert np.allclose(sim.v0.numpy(), 1.0)
+    assert np.allclose(sim.initial_velocity()[0], 1.0)
 
 
 @wp.kernel
@@ -108,7 +108,7 @@ def test_extension_point_effect_parameters_live_in_the_parameter_table():
 def test_batched_rollout_equals_one_rollout_per_parameter_set():
     sims = [falling_ball("elastic", {"E": e}) for e in (3e4, 9e4)]
     batched = falling_ball("elastic", {"E": 3e4})
-    batched = scene([(batched.x0.numpy(), batched.volume.numpy()[0])],
+    batched = scene([(batched.initial_positions(), batched.volumes()[0])],
                     batched.objects, dx=batched.dx, lo=batched.lo, hi=batched.hi,
                     ground=batched.config.ground, effects=batched.effects,
                     velocities=[(0.5, 0.0, -1.0)], n_batch=2)
@@ -123,7 +123,7 @@ def test_batched_rollout_equals_one_rollout_per_parameter_set():
 def test_batched_gradients_equal_one_backward_per_parameter_set():
     target = falling_ball("elastic", {"E": 6e4}).rollout(4)[:, 0].astype(np.float64)
     single = falling_ball("elastic", {"E": 3e4})
-    batched = scene([(single.x0.numpy(), single.volume.numpy()[0])], single.objects,
+    batched = scene([(single.initial_positions(), single.volumes()[0])], single.objects,
                     dx=single.dx, lo=single.lo, hi=single.hi, ground=single.config.ground,
                     effects=single.effects, velocities=[(0.5, 0.0, -1.0)], n_batch=2)
     batched.params.set("E", [[3e4], [3e4]])
@@ -201,7 +201,7 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
                 dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=0.05),
                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=2)
     n_sub, dt = sim.time_step()
-    x = np.repeat(sim.x0.numpy()[None], 2, axis=0).astype(np.float64)
+    x = np.repeat(sim.initial_positions()[None], 2, axis=0).astype(np.float64)
     lying = x.copy()
     lying[1, :3] = [[0.061, 0.061, 0.061], [0.539, 0.339, 0.339], [0.3, 0.07, 0.33]]  # near walls
     for positions in (x, lying):
@@ -249,3 +249,55 @@ def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches()
     assert np.abs(traj_graph - traj_eager).max() < 1e-5
     assert dE_graph == pytest.approx(dE_eager, rel=1e-3)
     assert np.abs(dv_graph - dv_eager).max() < 1e-3 * np.abs(dv_eager).max()
+
+
+def test_cell_order_is_invisible_to_callers():
+    # Two objects, two batches, per-particle velocities and volumes that differ by particle: the
+    # simulator sorted by cell must give, in the callers' order, what the unsorted one gives
+    # (up to the order of float sums), and its last state must continue the same way.
+    dx, floor = 0.02, 0.1
+    solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
+                                                                   (0.03, 0.04, 0.03), dx / 2)]
+    objects = [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
+    runs = {}
+    for order in (False, True):
+        sim = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3),
+                    ground=Ground(height=floor), n_batch=2, cell_order=order)
+        n = sim.n_particles
+        v = np.random.default_rng(3).normal(scale=0.3, size=(2, n, 3))
+        volume = (dx / 2) ** 3 * np.random.default_rng(4).uniform(0.5, 1.5, size=(2, n))
+        sim.set_initial_velocity(v)
+        sim.set_volume(volume)
+        assert np.array_equal(sim.initial_velocity(), v.astype(np.float32))
+        assert np.array_equal(sim.volumes(), volume.astype(np.float32))
+        assert np.array_equal(sim.initial_positions(), np.concatenate([s[0] for s in solids]).astype(np.float32))
+        assert np.array_equal(sim.object_index(), np.repeat([0, 1], [len(s[0]) for s in solids]))
+        traj = sim.rollout(4, grad=True)
+        dL = np.random.default_rng(5).normal(size=traj.shape)
+        grads = sim.backward(dL)
+        state = sim.frame_state(2)
+        more = sim.rollout(2, initial=sim.last_state())
+        runs[order] = traj, grads, state, more, sim._order
+    (traj0, g0, s0, m0, o0), (traj1, g1, s1, m1, o1) = runs[False], runs[True]
+    assert o0 is None and not np.array_equal(o1, np.arange(len(o1)))  # the order did change
+    assert np.abs(traj1 - traj0).max() < 1e-6
+    assert np.abs(m1 - m0).max() < 1e-6
+    for a, b in zip((s0.x, s0.v, s0.C, s0.b), (s1.x, s1.v, s1.C, s1.b), strict=True):
+        assert np.abs(b - a).max() < 1e-4 * max(1.0, np.abs(a).max())
+    assert np.abs(g1.v0 - g0.v0).max() < 1e-4 * np.abs(g0.v0).max()
+    assert np.abs(g1.volume - g0.volume).max() < 1e-4 * np.abs(g0.volume).max()
+    for name in ("E", "nu", "yield_stress", "density", "friction"):
+        assert g1.params[name] == pytest.approx(g0.params[name], rel=1e-3, abs=1e-9), name
+
+
+def test_the_default_sorts_scattered_particles_and_keeps_a_lattice():
+    from mosiv_ros.sim.simulator import SORT_BELOW, shared_cells
+
+    dx = 0.02
+    sim = scene([box((0.2, 0.2, 0.2), (0.05, 0.04, 0.03), dx / 2)],
+                [ObjectModel("block", "elastic", {})], dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
+    cells = sim._stencil_cells(sim.initial_positions())
+    assert shared_cells(cells) > 0.4 > SORT_BELOW  # a lattice: two particles to a cell along z
+    shuffled = cells[np.random.default_rng(0).permutation(len(cells))]
+    assert shared_cells(shuffled) < 0.05 < SORT_BELOW
+    assert sim._order is None  # and on the CPU nothing is sorted by default

@@ -180,7 +180,7 @@ def test_object_friction_gradient_matches_finite_differences():
         total, dL = 0.0, np.zeros_like(traj, dtype=np.float64)
         for f in FRAMES:  # per object, as the identifier will do
             for k in (0, 1):
-                mask = fit.obj.numpy() == k
+                mask = fit.object_index() == k
                 value, g = chamfer(traj[f, 0, mask].astype(np.float64), both[f, mask])
                 total += value
                 dL[f, 0, mask] = g
@@ -204,13 +204,13 @@ def test_initial_velocity_and_volume_gradients_match_finite_differences():
     substeps = sim.time_step()[0] + 2
     _, dL = loss(sim, target, substeps, grad=True)
     grads = sim.backward(dL)
-    v0 = sim.v0.numpy().astype(np.float64)
-    volume = sim.volume.numpy().astype(np.float64)
+    v0 = sim.initial_velocity()[0].astype(np.float64)
+    volume = sim.volumes()[0].astype(np.float64)
 
     # Directional derivatives: a uniform change of the x velocity; more volume (mass) in the
     # upper half of the ball (a uniform volume scaling would change nothing: mass and stress
     # scale together).
-    upper = volume * (sim.x0.numpy()[:, 2] > sim.x0.numpy()[:, 2].mean())
+    upper = volume * (sim.initial_positions()[:, 2] > sim.initial_positions()[:, 2].mean())
 
     def at(v_shift=0.0, volume_shift=0.0):
         sim.set_initial_velocity(v0 + [v_shift, 0.0, 0.0])

@@ -63,10 +63,10 @@ def test_momentum_is_conserved_when_two_objects_collide_away_from_boundaries():
                 dx=dx, lo=(0, 0, 0), hi=(0.5, 0.5, 0.5), frame_dt=0.01, effects=[],
                 velocities=[(1.0, 0.0, 0.0), (-0.25, 0.1, 0.0)])
     mass = np.r_[np.full(len(a[0]), 1000 * a[1]), np.full(len(b[0]), 2000 * b[1])]
-    before = mass @ sim.v0.numpy()
+    before = mass @ sim.initial_velocity()[0]
     traj = sim.rollout(12)
     after = mass @ sim.last_state().v[0]  # particle velocities after the collision
-    assert np.abs(after - before).max() <= 1e-5 * np.abs(mass @ np.abs(sim.v0.numpy())).max()
+    assert np.abs(after - before).max() <= 1e-5 * np.abs(mass @ np.abs(sim.initial_velocity()[0])).max()
     # they met (a slowed down) and came apart again
     ca = traj[:, 0, : len(a[0]), 0].mean(axis=1)
     assert (ca[-1] - ca[-2]) / 0.01 < 0.5
@@ -105,7 +105,7 @@ def test_tilted_ground_plane_gives_the_same_slide_as_tilted_gravity():
                 [ObjectModel("block", "elastic", {"E": 2e5})], dx=dx, lo=(0, 0, 0),
                 hi=(0.7, 0.3, 0.5),
                 ground=Ground(height=float(normal @ anchor), normal=tuple(normal), friction=mu))
-    drift = sim.rollout(15)[:, 0].mean(axis=1) - sim.x0.numpy().mean(axis=0)
+    drift = sim.rollout(15)[:, 0].mean(axis=1) - sim.initial_positions().mean(axis=0)
     downhill = drift @ np.array([-c, 0.0, -s])
     assert slope_acceleration(downhill, 0.02) == pytest.approx(G * (s - mu * c), rel=0.03)
     assert abs(drift[-1] @ normal) < dx / 2  # stays on the plane
@@ -114,7 +114,7 @@ def test_tilted_ground_plane_gives_the_same_slide_as_tilted_gravity():
 def test_block_slides_on_another_object_with_the_pair_friction():
     sim = two_blocks(0.2, 0.2, tilted_gravity(30))
     traj = sim.rollout(15)
-    n_slab = int((sim.obj.numpy() == 0).sum())
+    n_slab = int((sim.object_index() == 0).sum())
     block_x = traj[:, 0, n_slab:, 0].mean(axis=1)
     slab_x = traj[:, 0, :n_slab, 0].mean(axis=1)
     expected = G * (np.sin(np.radians(30)) - 0.2 * np.cos(np.radians(30)))
@@ -128,7 +128,7 @@ def test_block_slides_on_another_object_with_the_pair_friction():
 def test_block_sticks_on_another_object_when_the_pair_friction_exceeds_tan_theta():
     sim = two_blocks(0.6, 0.8, tilted_gravity(30))  # pair mu 0.7 > tan 30 = 0.58
     traj = sim.rollout(15)
-    n_slab = int((sim.obj.numpy() == 0).sum())
+    n_slab = int((sim.object_index() == 0).sum())
     block_x = traj[:, 0, n_slab:, 0].mean(axis=1)
     assert abs(block_x[-1] - block_x[8]) < 2e-4
 
@@ -296,7 +296,7 @@ def test_wind_body_force_adds_a_uniform_acceleration():
                 dx=dx, lo=(0, 0, 0), hi=(1, 1, 1), frame_dt=0.05,
                 effects=[BodyForce(a=(2.0, -1.0, 0.0))])
     n_sub, dt = sim.time_step()
-    drift = sim.rollout(6)[:, 0].mean(axis=1) - sim.x0.numpy().mean(axis=0)
+    drift = sim.rollout(6)[:, 0].mean(axis=1) - sim.initial_positions().mean(axis=0)
     n = np.arange(7) * n_sub
     discrete = dt * dt * n * (n + 1) / 2
     assert drift[:, 0] == pytest.approx(2.0 * discrete, abs=1e-5)

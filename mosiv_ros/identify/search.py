@@ -155,7 +155,7 @@ class GlobalSearch:
         """
         fit = self.identifier
         n = len(candidates)
-        batch.set_initial_velocity(fit.sim.v0.numpy()[: fit.sim.n_particles])
+        batch.set_initial_velocity(fit.sim.initial_velocity()[0])
         offsets = np.repeat(fit.offsets[None], n, axis=0)
         for name in dict.fromkeys(e.name for e in fit.entries):
             values = offsets if name == OFFSET else np.repeat(fit.sim.params.get(name), n, axis=0)
