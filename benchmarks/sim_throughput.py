@@ -4,9 +4,11 @@
     python benchmarks/sim_throughput.py --device cpu --particles 10000 100000
 
 Scenes: one or two elastic blocks (8 particles per cell) dropped onto the ground. Each
-configuration runs in its own subprocess (so that its peak memory is its own): one warm-up frame
-(kernel compilation), then ``--frames`` timed frames forward only, then the same frames with
-checkpoints plus the backward pass of a random dL/dx. Throughput is particle-substeps per second
+configuration runs in its own subprocess (so that its peak memory is its own): a warm-up of two
+frames forward and two with their backward pass (kernel compilation; on a GPU the capture of the
+frame's and the backward's CUDA graphs, which an identification replays hundreds of times), then
+``--frames`` timed frames forward only, then the same frames with checkpoints plus the backward
+pass of a random dL/dx. Throughput is particle-substeps per second
 (particles x substeps / wall time). Peak memory: GPU, the largest drop of the device's free
 memory while the configuration ran; CPU, the subprocess's peak resident set size. A
 ``frames_scaling`` entry repeats forward+backward of the middle configuration with twice the
@@ -55,18 +57,25 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str) -> dict:
     free0 = wp.get_device(sim.device).free_memory if cuda else 0
     lowest = [free0]
 
-    def sample(_frame=None):
+    def sample():  # after each run: the buffers a run allocates are kept by the simulator
         if cuda:
             lowest[0] = min(lowest[0], wp.get_device(sim.device).free_memory)
 
     n_sub, _ = sim.time_step()
-    sim.rollout(1, progress=sample)  # warm-up: kernel compilation
+    rng = np.random.default_rng(0)
+    # warm-up: compilation and the CUDA graphs' captures (the backward's first run allocates
+    # its buffers and drops the graphs captured before, so the forward comes after it)
+    traj = sim.rollout(2, grad=True)
+    sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
+    sim.rollout(2)
+    sample()
     start = time.perf_counter()
-    sim.rollout(frames, progress=sample)
+    sim.rollout(frames)
     forward = time.perf_counter() - start
+    sample()
     start = time.perf_counter()
-    traj = sim.rollout(frames, grad=True, progress=sample)
-    dL = np.random.default_rng(0).normal(size=traj.shape).astype(np.float32) * 1e-3
+    traj = sim.rollout(frames, grad=True)
+    dL = rng.normal(size=traj.shape).astype(np.float32) * 1e-3
     sim.backward(dL)
     sample()
     both = time.perf_counter() - start

@@ -291,7 +291,6 @@ class Simulator:
                                   v=particles.v[self._order])
             self._inverse = np.argsort(self._order)
             self._order_wp = wp.array(self._order.astype(np.int32), dtype=int, device=self.device)
-            self._x_out = wp.zeros(self.n_batch * self.n_particles, dtype=wp.vec3, device=self.device)
         self.effects = list(config.effects)
         names = [e.name for e in self.effects]
         if len(set(names)) != len(names):
@@ -645,14 +644,15 @@ class Simulator:
         self._graphs.clear()
         self._seen.clear()
 
-    def _check(self, state: _State, frame: int, dt: float) -> None:
-        K = self.n_objects
-        stats = wp.array(np.tile([0.0, 0.0, 0.0, np.inf], self.n_batch * K).astype(np.float32),
-                         dtype=float, device=self.device)
+    def _check(self, state: _State, stats: wp.array) -> None:
+        """Launch the state check of one frame into ``stats`` (B * K * 4, see ``_diverged``)."""
         wp.launch(kernels.check_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, K,
+                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, self.n_objects,
                           wp.vec3(*self.lo), wp.vec3(*self.hi)], outputs=[stats])
-        stats = stats.numpy().reshape(self.n_batch, K, 4)
+
+    def _diverged(self, stats: np.ndarray, frame: int, dt: float) -> None:
+        """Raise ``SimulationDiverged`` if a frame's check statistics say so."""
+        stats = stats.reshape(self.n_batch, self.n_objects, 4)
         limit = self.dx / dt
         for b in range(self.n_batch):
             for k, o in enumerate(self.objects):
@@ -689,14 +689,14 @@ class Simulator:
                   inputs=[self.x0, self.v0, self.n_particles],
                   outputs=[state.x, state.v, state.C, state.b])
 
-    def _positions(self, state: _State) -> np.ndarray:
-        """Particle positions (B, N, 3) of ``state`` in the callers' order."""
-        x = state.x
-        if self._order is not None:
-            wp.launch(_to_callers, dim=len(x), inputs=[x, self._order_wp, self.n_particles],
-                      outputs=[self._x_out], device=self.device)
-            x = self._x_out
-        return x.numpy().reshape(self.n_batch, self.n_particles, 3)
+    def _keep_positions(self, state: _State, positions: wp.array, frame: int) -> None:
+        """Copy ``state``'s positions, in the callers' order, into ``frame``'s of ``positions``."""
+        n = self.n_batch * self.n_particles
+        if self._order is None:
+            wp.copy(positions, state.x, dest_offset=frame * n, count=n)
+        else:
+            wp.launch(_to_callers, dim=n, inputs=[state.x, self._order_wp, self.n_particles],
+                      outputs=[positions[frame * n:(frame + 1) * n]], device=self.device)
 
     def last_state(self) -> SimState:
         """The particle state at the end of the last rollout."""
@@ -740,8 +740,15 @@ class Simulator:
             self._initial_state(states[0])
         else:
             self._assign_state(states[0], initial)
-        out = np.empty((n_frames + 1, B, N, 3), dtype=np.float32)
-        out[0] = self._positions(states[0])
+        # Positions and checks of every frame stay on the device until the end, so that on a GPU
+        # the frames are queued without waiting for the host; the CPU (synchronous anyway), and
+        # a caller who follows the progress, read each frame's check at once and stop there.
+        positions = wp.empty((n_frames + 1) * B * N, dtype=wp.vec3, device=self.device)
+        row = 4 * B * self.n_objects
+        stats = wp.array(np.tile(np.float32([0.0, 0.0, 0.0, np.inf]), n_frames * row // 4),
+                         dtype=float, device=self.device)
+        early = self.device == "cpu" or progress is not None
+        self._keep_positions(states[0], positions, 0)
         checkpoints = []
         if grad:
             checkpoints.append(_clone(states[0]))
@@ -752,12 +759,19 @@ class Simulator:
                          partial(self._frame, states, current, grid, n_sub, dt))
             current = (current + n_sub) % 2
             if check:
-                self._check(states[current], start_frame + frame + 1, dt)
-            out[frame + 1] = self._positions(states[current])
+                frame_stats = stats[frame * row:(frame + 1) * row]
+                self._check(states[current], frame_stats)
+                if early:
+                    self._diverged(frame_stats.numpy(), start_frame + frame + 1, dt)
+            self._keep_positions(states[current], positions, frame + 1)
             if grad:
                 checkpoints.append(_clone(states[current]))
             if progress is not None:
                 progress(frame + 1)
+        if check and not early:
+            for frame, frame_stats in enumerate(stats.numpy().reshape(n_frames, row)):
+                self._diverged(frame_stats, start_frame + frame + 1, dt)
+        out = positions.numpy().reshape(n_frames + 1, B, N, 3)
         self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt,
                          "start_frame": start_frame} if grad else None)
         self._final = states[current]
