@@ -249,3 +249,24 @@ def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches()
     assert np.abs(traj_graph - traj_eager).max() < 1e-5
     assert dE_graph == pytest.approx(dE_eager, rel=1e-3)
     assert np.abs(dv_graph - dv_eager).max() < 1e-3 * np.abs(dv_eager).max()
+
+
+def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named():
+    from mosiv_ros.sim import kernels
+    from mosiv_ros.sim.simulator import _bind, _Grid, _State
+
+    sim = falling_ball("elastic", {})
+    n = sim.n_particles
+    src, dst = _State(n, sim.device, False), _State(n, sim.device, False)
+    grid = _Grid(1, 1, sim.n_nodes, n, False, sim.device, False)
+    args = dict(zip([a.label for a in kernels.g2p.adj.args],
+                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3},
+                          sim._scene), strict=True))
+    assert args["src_x"] is src.x and args["dst_x"] is dst.x and args["dst_C"] is dst.C
+    assert args["grid_v"] is grid.v and args["ground_height"] is sim.params["ground.height"]
+    assert args["dt"] == 1e-3 and args["n_particles"] == n and args["has_ground"] == 1
+    with pytest.raises(TypeError, match=r"kernel g2p: no value for its parameter 'dst_x'"):
+        _bind(kernels.g2p, {"src": src, "grid": grid, "dt": 1e-3}, sim._scene)
+    with pytest.raises(TypeError, match=r"kernel g2p takes nothing from substep"):
+        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0},
+              sim._scene)

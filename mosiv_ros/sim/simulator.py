@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -161,7 +161,11 @@ class Gradients:
 
 
 class _State:
-    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T)."""
+    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T).
+
+    A kernel reads them as ``<role>_x``, ... where the launch passes the state as ``<role>``
+    (``src``, ``dst``, ``state``; see ``_bind``).
+    """
 
     def __init__(self, n: int, device: str, requires_grad: bool) -> None:
         self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
@@ -182,7 +186,7 @@ class _Grid:
     """Grid arrays of one substep.
 
     Per (batch, object, node) fields, per (batch, node) contact sums (only with several
-    objects), and the effects' per-particle stress.
+    objects), and the effects' per-particle stress. Kernels read them as ``grid_<name>``.
     """
 
     def __init__(self, n_batch: int, n_objects: int, n_nodes: int, n_particles: int, stress: bool,
@@ -216,15 +220,68 @@ class _Grid:
             array.zero_()
 
 
+@dataclass(frozen=True)
+class _Colliders:
+    """What the grid update reads of the colliders (as ``collider_<name>``).
+
+    Their ``count``; per collider c its shape code (``COLLIDER_SHAPES``), size and friction; per
+    substep s of a frame and collider c, row s * count + c: position, rotation (world from
+    collider), linear and angular velocity (allocated for a frame's substeps by
+    ``Simulator._collider_poses``). One entry, unused, when there are none.
+    """
+
+    count: int
+    shape: wp.array
+    size: wp.array
+    friction: wp.array
+    pos: wp.array | None = None
+    rot: wp.array | None = None
+    vel: wp.array | None = None
+    omega: wp.array | None = None
+
+
+def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object]) -> list:
+    """The arguments of ``kernel``, each found by its parameter's name.
+
+    A parameter takes, in this order: the value ``given`` under its name; field ``<field>`` of
+    the bundle ``given`` as ``<bundle>`` when it is named ``<bundle>_<field>`` (a ``_State``
+    as ``src``, ``dst`` or ``state``, a ``_Grid`` as ``grid``, the ``_Colliders`` as
+    ``collider``); or the simulator's value of that name (``Simulator._scene``: sizes, grid
+    geometry, per-particle and per-object constants, every parameter's replicas with its dots
+    written as underscores, e.g. ``ground_height``). So the kernels' signatures are the only
+    lists of their arguments. A parameter found nowhere, or a given value no parameter takes,
+    is an error naming it.
+    """
+    args, used = [], set()
+    for arg in kernel.adj.args:
+        name = arg.label
+        bundle, _, member = name.partition("_")
+        if name in given:
+            args.append(given[name])
+            used.add(name)
+        elif bundle in given and hasattr(given[bundle], member):
+            args.append(getattr(given[bundle], member))
+            used.add(bundle)
+        elif name in scene:
+            args.append(scene[name])
+        else:
+            raise TypeError(f"kernel {kernel.key}: no value for its parameter {name!r} (not given, "
+                            f"not a field of a given bundle, not a simulator value)")
+    unused = sorted(set(given) - used)
+    if unused:
+        raise TypeError(f"kernel {kernel.key} takes nothing from {', '.join(unused)}")
+    return args
+
+
 @wp.kernel
 def _init_state(x0: wp.array(dtype=wp.vec3), v0: wp.array(dtype=wp.vec3), n_particles: int,
-                x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                C: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.mat33)):
+                state_x: wp.array(dtype=wp.vec3), state_v: wp.array(dtype=wp.vec3),
+                state_C: wp.array(dtype=wp.mat33), state_b: wp.array(dtype=wp.mat33)):
     i = wp.tid()
-    x[i] = x0[i % n_particles]
-    v[i] = v0[i]
-    C[i] = wp.mat33(0.0)
-    b[i] = wp.identity(n=3, dtype=float)
+    state_x[i] = x0[i % n_particles]
+    state_v[i] = v0[i]
+    state_C[i] = wp.mat33(0.0)
+    state_b[i] = wp.identity(n=3, dtype=float)
 
 
 @wp.kernel
@@ -293,6 +350,16 @@ class Simulator:
         self.set_volume(particles.volume)
         self.set_initial_velocity(particles.v)
         self._setup_colliders()
+        # what the kernels read besides the bundles a launch passes (_bind); these arrays live
+        # as long as the simulator (parameter values are written into their replicas)
+        self._scene = {
+            "n_particles": self.n_particles, "n_objects": self.n_objects, "n_nodes": self.n_nodes,
+            "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
+            "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
+            "family": self.family, "normal_rank": self.normal_rank,
+            "ranked_object": self.ranked_object, "has_ground": int(config.ground is not None),
+            **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
+        }
         self._stress = any(e.has_stress for e in self.effects)
         self._record: dict | None = None
         self._final: _State | None = None
@@ -345,10 +412,10 @@ class Simulator:
         d, colliders = self.device, self.config.colliders
         shapes = [COLLIDER_SHAPES[c.shape] for c in colliders] or [0]
         sizes = [tuple(c.size) + (0.0,) * (3 - len(c.size)) for c in colliders] or [(0.0,) * 3]
-        self._collider_shape = wp.array(shapes, dtype=int, device=d)
-        self._collider_size = wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d)
-        self._collider_friction = wp.array([c.friction for c in colliders] or [0.0], dtype=float,
-                                           device=d)
+        self._colliders = _Colliders(
+            count=len(colliders), shape=wp.array(shapes, dtype=int, device=d),
+            size=wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d),
+            friction=wp.array([c.friction for c in colliders] or [0.0], dtype=float, device=d))
         self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
@@ -357,10 +424,11 @@ class Simulator:
         rows = n_sub * len(colliders) if colliders else 1
         if rows != self._collider_rows:
             d = self.device
-            self._collider_pos = wp.zeros(rows, dtype=wp.vec3, device=d)
-            self._collider_rot = wp.zeros(rows, dtype=wp.quat, device=d)
-            self._collider_vel = wp.zeros(rows, dtype=wp.vec3, device=d)
-            self._collider_omega = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._colliders = replace(
+                self._colliders, pos=wp.zeros(rows, dtype=wp.vec3, device=d),
+                rot=wp.zeros(rows, dtype=wp.quat, device=d),
+                vel=wp.zeros(rows, dtype=wp.vec3, device=d),
+                omega=wp.zeros(rows, dtype=wp.vec3, device=d))
             self._collider_rows = rows
             self._forget_graphs()
         if not colliders:
@@ -375,10 +443,10 @@ class Simulator:
                 t = t0 + s * dt
                 pos[s, c], rot[s, c] = collider.pose(t)
                 vel[s, c], omega[s, c] = collider.velocity(t)
-        self._collider_pos.assign(pos.reshape(-1, 3))
-        self._collider_rot.assign(rot.reshape(-1, 4))
-        self._collider_vel.assign(vel.reshape(-1, 3))
-        self._collider_omega.assign(omega.reshape(-1, 3))
+        self._colliders.pos.assign(pos.reshape(-1, 3))
+        self._colliders.rot.assign(rot.reshape(-1, 4))
+        self._colliders.vel.assign(vel.reshape(-1, 3))
+        self._colliders.omega.assign(omega.reshape(-1, 3))
 
     def set_initial_velocity(self, v: np.ndarray) -> None:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
@@ -435,50 +503,36 @@ class Simulator:
     def _values(self, effect: Effect) -> dict[str, wp.array]:
         return {s.name: self.params[f"{effect.name}.{s.name}"] for s in effect.params}
 
+    def _run(self, kernel: wp.Kernel, dim: int, **given: object) -> None:
+        """Launch ``kernel`` over ``dim`` threads with its arguments found by name (``_bind``)."""
+        wp.launch(kernel, dim=dim, inputs=_bind(kernel, given, self._scene), device=self.device)
+
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float) -> None:
+        """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
+
+        ``row`` is the substep's index in its frame (which collider poses apply).
+        """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
-        p = self.params
-        dims = wp.vec3i(*self.dims)
-        lo = wp.vec3(*self.lo)
         grid.zero()
         if self._stress:
             view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        wp.launch(kernels.p2g, dim=B * N, device=d, inputs=[
-            src.x, src.v, src.C, src.b, self.volume, grid.tau, self.obj, self.family,
-            p["E"], p["nu"], p["yield_stress"], p["friction_angle"], p["bulk_modulus"],
-            p["viscosity"], p["density"], N, K, G, dims, lo, self.dx, dt,
-        ], outputs=[dst.b, grid.m, grid.p])
+        self._run(kernels.p2g, B * N, src=src, dst=dst, grid=grid, dt=dt)
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d)
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
         box_lo, box_dims = self._active_box(src)
         n_box = B * K * int(np.prod(box_dims))
-        box = [dims, wp.vec3i(*box_lo), wp.vec3i(*box_dims)]
+        box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
         if K > 1:
-            wp.launch(kernels.node_mass, dim=n_box, device=d, inputs=[grid.m, G, K, *box],
-                      outputs=[grid.node_m])
-            wp.launch(kernels.contact_totals, dim=n_box, device=d, inputs=[
-                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, *box,
-                dt,
-            ], outputs=[grid.present_m, grid.present_p, grid.present_mu, grid.present_count,
-                        grid.lead_rank])
-        wp.launch(kernels.grid_update, dim=n_box, device=d, inputs=[
-            grid.m, grid.p, grid.a, p["friction"], grid.node_m, grid.present_m, grid.present_p,
-            grid.present_mu, grid.present_count, grid.lead_rank, self.ranked_object,
-            p["ground.height"], p["ground.normal"], p["ground.friction"],
-            int(self.config.ground is not None),
-            self._collider_shape, self._collider_size, self._collider_friction,
-            self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
-            row, len(self.config.colliders), K, G, *box, lo, self.dx, dt,
-        ], outputs=[grid.v])
-        wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
-            src.x, grid.v, self.obj, p["ground.height"], p["ground.normal"],
-            int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
-        ], outputs=[dst.x, dst.v, dst.C])
+            self._run(kernels.node_mass, n_box, grid=grid, **box)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt)
+        self._run(kernels.grid_update, n_box, grid=grid, collider=self._colliders, substep=row,
+                  **box, dt=dt)
+        self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
@@ -570,9 +624,7 @@ class Simulator:
         K = self.n_objects
         stats = wp.array(np.tile([0.0, 0.0, 0.0, np.inf], self.n_batch * K).astype(np.float32),
                          dtype=float, device=self.device)
-        wp.launch(kernels.check_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, K,
-                          wp.vec3(*self.lo), wp.vec3(*self.hi)], outputs=[stats])
+        self._run(kernels.check_state, self.n_batch * self.n_particles, state=state, stats=stats)
         stats = stats.numpy().reshape(self.n_batch, K, 4)
         limit = self.dx / dt
         for b in range(self.n_batch):
@@ -606,9 +658,7 @@ class Simulator:
             array.assign(np.ascontiguousarray(values).reshape(B * N, *values.shape[2:]))
 
     def _initial_state(self, state: _State) -> None:
-        wp.launch(_init_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[self.x0, self.v0, self.n_particles],
-                  outputs=[state.x, state.v, state.C, state.b])
+        self._run(_init_state, self.n_batch * self.n_particles, state=state)
 
     def last_state(self) -> SimState:
         """The particle state at the end of the last rollout."""
