@@ -208,7 +208,7 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
         src, dst = _State(2 * sim.n_particles, sim.device, False), _State(2 * sim.n_particles,
                                                                           sim.device, False)
         sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
-        grid = _Grid(2, 2, sim.n_nodes, 2 * sim.n_particles, False, sim.device, False)
+        grid = _Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False)
         sim.params.replicate()
         sim._collider_poses(0, n_sub, dt)
         sim._substep(src, dst, grid, 0, dt)
@@ -301,3 +301,72 @@ def test_the_default_sorts_scattered_particles_and_keeps_a_lattice():
     shuffled = cells[np.random.default_rng(0).permutation(len(cells))]
     assert shared_cells(shuffled) < 0.05 < SORT_BELOW
     assert sim._order is None  # and on the CPU nothing is sorted by default
+
+
+def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named():
+    from mosiv_ros.sim import kernels
+    from mosiv_ros.sim.simulator import _bind, _Grid, _State
+
+    sim = falling_ball("elastic", {})
+    n = sim.n_particles
+    src, dst = _State(n, sim.device, False), _State(n, sim.device, False)
+    grid = _Grid(1, 1, sim.dims, n, False, sim.device, False)
+    args = dict(zip([a.label for a in kernels.g2p.adj.args],
+                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3},
+                          sim._scene), strict=True))
+    assert args["src_x"] is src.x and args["dst_x"] is dst.x and args["dst_C"] is dst.C
+    assert args["grid_v"] is grid.v and args["ground_height"] is sim.params["ground.height"]
+    assert args["dt"] == 1e-3 and args["n_particles"] == n and args["has_ground"] == 1
+    with pytest.raises(TypeError, match=r"kernel g2p: no value for its parameter 'dst_x'"):
+        _bind(kernels.g2p, {"src": src, "grid": grid, "dt": 1e-3}, sim._scene)
+    with pytest.raises(TypeError, match=r"kernel g2p takes nothing from substep"):
+        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0},
+              sim._scene)
+
+
+def _two_balls(n_batch=1):
+    dx = 0.02
+    ball = sphere((0.12, 0.2, 0.2), 0.04, dx / 2)
+    block = box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)
+    return scene([ball, block], [ObjectModel("ball", "elastic", {"E": 3e4}),
+                                 ObjectModel("block", "plastic", {"E": 5e4})],
+                 dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=0.05),
+                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=n_batch)
+
+
+def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds():
+    """Grids are cleared over the box the last substep wrote: nothing of it may remain."""
+    from mosiv_ros.sim.simulator import SimState, _Grid, _State
+
+    sim = _two_balls(n_batch=2)
+    n_sub, dt = sim.time_step()
+    x = np.repeat(sim.initial_positions()[None], 2, axis=0).astype(np.float64)
+    elsewhere = x + np.array([0.15, 0.08, -0.1])  # another box of nodes
+    grids = [_Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False) for _ in range(2)]
+    sim.params.replicate()
+    sim._collider_poses(0, n_sub, dt)
+    for grid, starts in zip(grids, ([x], [elsewhere, x]), strict=True):
+        for positions in starts:
+            src, dst = (_State(2 * sim.n_particles, sim.device, False) for _ in range(2))
+            sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
+            sim._substep(src, dst, grid, 0, dt)
+    for name in ("m", "p", "a", "v", "node_m", "present_m", "present_p", "present_mu",
+                 "present_count", "lead_rank"):
+        fresh, reused = (getattr(g, name).numpy() for g in grids)
+        assert np.count_nonzero(fresh) > 0 and np.array_equal(fresh, reused), name
+
+
+def test_gradients_after_an_earlier_backward_elsewhere_equal_a_fresh_simulators():
+    """The tape's grids keep their gradients only over the box each substep wrote, zeroed per frame."""
+    fresh, reused = _two_balls(), _two_balls()
+    reused.rollout(3, grad=True)  # the balls move: later frames run over other boxes
+    reused.backward(np.ones((4, 1, reused.n_particles, 3), np.float32))
+    start = reused.frame_state(3)
+    results = []
+    for sim in (fresh, reused):
+        traj = sim.rollout(2, grad=True, initial=start)
+        results.append(sim.backward(np.random.default_rng(0).normal(size=traj.shape).astype(np.float32)))
+    for name in ("E", "nu", "friction", "ground.friction", "gravity.g"):
+        assert np.array_equal(results[0].params[name], results[1].params[name]), name
+    assert np.array_equal(results[0].v0, results[1].v0)
+    assert np.abs(results[0].params["E"]).max() > 0

@@ -6,7 +6,9 @@ the material parameters) and implements one or both hooks:
 
 - ``accelerate(grid, values)``: runs after particle-to-grid, before the grid update. It adds
   accelerations (m/s^2) to ``grid.a``, one vec3 per (batch, object, node), from the grid mass and
-  momentum (read-only). The grid update then integrates ``v = p / m + dt a``.
+  momentum (read-only), at nodes with mass. The grid update then integrates ``v = p / m + dt a``.
+  Every node with mass lies in the box of nodes the grid passes run over (``GridView``): a hook
+  may launch one thread per node of it rather than of the whole grid.
 - ``stress(particles, values)``: runs before particle-to-grid. It adds a Kirchhoff stress (Pa) to
   ``particles.tau``, one mat33 per particle, from the particle state (read-only); P2G scatters
   it with the material stress.
@@ -37,13 +39,18 @@ import numpy as np
 import warp as wp
 
 from mosiv_ros.sim.errors import ParameterError
-from mosiv_ros.sim.kernels import divide
+from mosiv_ros.sim.kernels import divide, field_node
 from mosiv_ros.sim.params import ParamSpec, param
 
 
 @dataclass
 class GridView:
-    """What an ``accelerate`` hook sees: the grid of one substep (index (b * K + k) * G + node)."""
+    """What an ``accelerate`` hook sees: the grid of one substep (index (b * K + k) * G + node).
+
+    Every node with mass is in the box of ``box_dims`` nodes from ``box_lo`` (the whole grid on
+    CUDA, the nodes the particles reach on the CPU): a launch of ``n_box`` threads covers it in
+    every field, thread t at node ``kernels.field_node(t, box_lo, box_dims, dims)``.
+    """
 
     m: wp.array  # float, mass
     p: wp.array  # vec3, momentum
@@ -56,6 +63,17 @@ class GridView:
     dx: float
     dt: float
     device: str
+    box_lo: tuple[int, int, int]
+    box_dims: tuple[int, int, int]
+
+    @property
+    def n_box(self) -> int:
+        return self.n_batch * self.n_objects * int(np.prod(self.box_dims))
+
+    @property
+    def box(self) -> list:
+        """The launch arguments box_lo, box_dims, dims of ``kernels.field_node``."""
+        return [wp.vec3i(*self.box_lo), wp.vec3i(*self.box_dims), wp.vec3i(*self.dims)]
 
 
 @dataclass
@@ -130,11 +148,11 @@ class Effect:
 
 @wp.kernel
 def uniform_acceleration_kernel(
-    m: wp.array(dtype=float), values: wp.array(dtype=float), per_batch: int,
-    a: wp.array(dtype=wp.vec3)
+    m: wp.array(dtype=float), values: wp.array(dtype=float), per_batch: int, box_lo: wp.vec3i,
+    box_dims: wp.vec3i, dims: wp.vec3i, a: wp.array(dtype=wp.vec3)
 ):
     """Add g(b) at every node with mass; ``per_batch`` = K * G nodes share one batch's vector."""
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     if m[i] > 0.0:
         b = i // per_batch
         g = wp.vec3(param(values, 3 * b, i), param(values, 3 * b + 1, i), param(values, 3 * b + 2, i))
@@ -148,10 +166,13 @@ def drag_kernel(
     coefficient: wp.array(dtype=float),
     n_nodes: int,
     quadratic: int,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
+    dims: wp.vec3i,
     a: wp.array(dtype=wp.vec3),
 ):
     """A -= c v (linear, 1/s) or a -= c |v| v (quadratic, 1/m), c per (batch, object)."""
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     mass = m[i]
     if mass > 0.0:
         v = divide(p[i], mass)  # not p[i] / mass: see kernels.divide
@@ -187,13 +208,15 @@ def periodic_field_kernel(
     wavelength: wp.array(dtype=float),
     per_batch: int,
     n_nodes: int,
-    dims: wp.vec3i,
     lo_x: float,
     dx: float,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
+    dims: wp.vec3i,
     a: wp.array(dtype=wp.vec3),
 ):
     """A += amplitude sin(2 pi x / wavelength) at every node with mass, x its world x."""
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     if m[i] > 0.0:
         b = i // per_batch
         x = lo_x + dx * float((i % n_nodes) // (dims[1] * dims[2]))
@@ -249,13 +272,15 @@ def force_field_kernel(
     per_batch: int,
     n_nodes: int,
     n_features: int,
-    dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
+    box_lo: wp.vec3i,
+    box_dims: wp.vec3i,
+    dims: wp.vec3i,
     a: wp.array(dtype=wp.vec3),
 ):
     """A += sum_m w_m feature_m(x - origin, v) at every node with mass (x its position)."""
-    i = wp.tid()
+    i = field_node(wp.tid(), box_lo, box_dims, dims)
     mass = m[i]
     if mass > 0.0:
         b = i // per_batch
@@ -360,9 +385,9 @@ class PeriodicField(Effect):
     def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
         wp.launch(
             periodic_field_kernel,
-            dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+            dim=grid.n_box,
             inputs=[grid.m, values["a"], values["wavelength"], grid.n_objects * grid.n_nodes,
-                    grid.n_nodes, wp.vec3i(*grid.dims), float(grid.lo[0]), grid.dx],
+                    grid.n_nodes, float(grid.lo[0]), grid.dx, *grid.box],
             outputs=[grid.a],
             device=grid.device,
         )
@@ -386,9 +411,9 @@ class ForceField(Effect):
     def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
         wp.launch(
             force_field_kernel,
-            dim=grid.n_batch * grid.n_objects * grid.n_nodes,
+            dim=grid.n_box,
             inputs=[grid.m, grid.p, values["w"], values["origin"], grid.n_objects * grid.n_nodes,
-                    grid.n_nodes, len(FIELD_FEATURES), wp.vec3i(*grid.dims), wp.vec3(*grid.lo), grid.dx],
+                    grid.n_nodes, len(FIELD_FEATURES), wp.vec3(*grid.lo), grid.dx, *grid.box],
             outputs=[grid.a],
             device=grid.device,
         )
@@ -406,8 +431,8 @@ def field_features(r: np.ndarray, v: np.ndarray) -> np.ndarray:
 def _uniform(grid: GridView, vector: wp.array) -> None:
     wp.launch(
         uniform_acceleration_kernel,
-        dim=grid.n_batch * grid.n_objects * grid.n_nodes,
-        inputs=[grid.m, vector, grid.n_objects * grid.n_nodes],
+        dim=grid.n_box,
+        inputs=[grid.m, vector, grid.n_objects * grid.n_nodes, *grid.box],
         outputs=[grid.a],
         device=grid.device,
     )
@@ -416,8 +441,8 @@ def _uniform(grid: GridView, vector: wp.array) -> None:
 def _drag(grid: GridView, coefficient: wp.array, quadratic: bool) -> None:
     wp.launch(
         drag_kernel,
-        dim=grid.n_batch * grid.n_objects * grid.n_nodes,
-        inputs=[grid.m, grid.p, coefficient, grid.n_nodes, int(quadratic)],
+        dim=grid.n_box,
+        inputs=[grid.m, grid.p, coefficient, grid.n_nodes, int(quadratic), *grid.box],
         outputs=[grid.a],
         device=grid.device,
     )

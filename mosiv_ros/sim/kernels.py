@@ -9,6 +9,12 @@ Eq. 123) and APIC affine velocity fields C (Jiang et al. 2015). Layouts:
   node = (i * ny + j) * nz + l on a dense nx * ny * nz grid of spacing dx whose node (0, 0, 0) is
   at ``lo``.
 
+Kernel parameters are named for where the simulator finds their values (``simulator._bind``):
+``src_x``, ``dst_b``, ... a field of a particle state, ``grid_m``, ... of the substep's grid,
+``collider_pos``, ... of the colliders, ``E``, ``ground_height``, ... a parameter's replicas,
+and sizes and geometry (``n_particles``, ``dims``, ``lo``, ``dx``, ...) by name.
+docs/simulator.md maps the substep onto the method.
+
 **Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
 contact algorithm for the material point method"; Huang et al. 2011): each object scatters to its
 own field, so objects do not stick together as on a single grid. At a node where two or more
@@ -97,12 +103,12 @@ def bspline_weights(fx: float):
 
 @wp.kernel
 def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    b: wp.array(dtype=wp.mat33),
+    src_x: wp.array(dtype=wp.vec3),
+    src_v: wp.array(dtype=wp.vec3),
+    src_C: wp.array(dtype=wp.mat33),
+    src_b: wp.array(dtype=wp.mat33),
     volume: wp.array(dtype=float),
-    tau_extra: wp.array(dtype=wp.mat33),
+    grid_tau: wp.array(dtype=wp.mat33),
     obj: wp.array(dtype=int),
     family: wp.array(dtype=int),
     E: wp.array(dtype=float),
@@ -119,7 +125,7 @@ def p2g(
     lo: wp.vec3,
     dx: float,
     dt: float,
-    b_out: wp.array(dtype=wp.mat33),
+    dst_b: wp.array(dtype=wp.mat33),
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
 ):
@@ -130,29 +136,29 @@ def p2g(
     q = batch * n_objects + k
     fam = family[k]
     # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
-    f = wp.identity(n=3, dtype=float) + C[i] * dt
-    b_trial = f * b[i] * wp.transpose(f)
+    f = wp.identity(n=3, dtype=float) + src_C[i] * dt
+    b_trial = f * src_b[i] * wp.transpose(f)
     E_q = param(E, q, i)
     nu_q = param(nu, q, i)
     b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
                            param(friction_angle, q, i))
-    b_out[i] = b_new
-    tau = kirchhoff_stress(fam, b_new, C[i], E_q, nu_q, param(bulk_modulus, q, i),
+    dst_b[i] = b_new
+    tau = kirchhoff_stress(fam, b_new, src_C[i], E_q, nu_q, param(bulk_modulus, q, i),
                            param(viscosity, q, i))
-    if tau_extra.shape[0] > 0:
-        tau = tau + tau_extra[i]
+    if grid_tau.shape[0] > 0:
+        tau = tau + grid_tau[i]
     inv_dx = 1.0 / dx
     vol = volume[i]
     mass = param(density, q, i) * vol
     # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
-    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C[i] * mass
-    base = stencil_base(x[i], lo, inv_dx, dims)
-    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + src_C[i] * mass
+    base = stencil_base(src_x[i], lo, inv_dx, dims)
+    fx = (src_x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
     offset = q * n_nodes
-    momentum = v[i] * mass
+    momentum = src_v[i] * mass
     # neighbouring lanes with the same stencil add once per node (sim.warp_reduce)
     run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
@@ -271,13 +277,13 @@ def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
 
 @wp.kernel
 def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int, dims: wp.vec3i,
-              box_lo: wp.vec3i, box_dims: wp.vec3i, node_m: wp.array(dtype=float)):
+              box_lo: wp.vec3i, box_dims: wp.vec3i, grid_node_m: wp.array(dtype=float)):
     """Total mass of all object fields at each node (contact pass 1, one thread per field node)."""
     i = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[i]
     if m > 0.0:
         batch = i // (n_objects * n_nodes)
-        wp.atomic_add(node_m, batch * n_nodes + i % n_nodes, m)
+        wp.atomic_add(grid_node_m, batch * n_nodes + i % n_nodes, m)
 
 
 @wp.kernel
@@ -287,18 +293,18 @@ def contact_totals(
     grid_a: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
     normal_rank: wp.array(dtype=int),
-    node_m: wp.array(dtype=float),
+    grid_node_m: wp.array(dtype=float),
     n_nodes: int,
     n_objects: int,
     dims: wp.vec3i,
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
     dt: float,
-    present_m: wp.array(dtype=float),
-    present_p: wp.array(dtype=wp.vec3),
-    present_mu: wp.array(dtype=float),
-    present_count: wp.array(dtype=int),
-    lead_rank: wp.array(dtype=int),
+    grid_present_m: wp.array(dtype=float),
+    grid_present_p: wp.array(dtype=wp.vec3),
+    grid_present_mu: wp.array(dtype=float),
+    grid_present_count: wp.array(dtype=int),
+    grid_lead_rank: wp.array(dtype=int),
 ):
     """Sums over the fields present at each node (contact pass 2, one thread per field node).
 
@@ -314,12 +320,12 @@ def contact_totals(
     batch = i // (n_objects * n_nodes)
     k = (i // n_nodes) % n_objects
     node = batch * n_nodes + i % n_nodes
-    if m > node_m[node] * CONTACT_MASS_FRACTION:
-        wp.atomic_add(present_m, node, m)
-        wp.atomic_add(present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
-        wp.atomic_add(present_mu, node, param(friction, batch * n_objects + k, i) * m)
-        wp.atomic_add(present_count, node, 1)
-        wp.atomic_max(lead_rank, node, normal_rank[k])
+    if m > grid_node_m[node] * CONTACT_MASS_FRACTION:
+        wp.atomic_add(grid_present_m, node, m)
+        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
+        wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
+        wp.atomic_add(grid_present_count, node, 1)
+        wp.atomic_max(grid_lead_rank, node, normal_rank[k])
 
 
 @wp.kernel
@@ -328,12 +334,12 @@ def grid_update(
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
-    node_m: wp.array(dtype=float),
-    present_m: wp.array(dtype=float),
-    present_p: wp.array(dtype=wp.vec3),
-    present_mu: wp.array(dtype=float),
-    present_count: wp.array(dtype=int),
-    lead_rank: wp.array(dtype=int),
+    grid_node_m: wp.array(dtype=float),
+    grid_present_m: wp.array(dtype=float),
+    grid_present_p: wp.array(dtype=wp.vec3),
+    grid_present_mu: wp.array(dtype=float),
+    grid_present_count: wp.array(dtype=int),
+    grid_lead_rank: wp.array(dtype=int),
     ranked_object: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
     ground_normal: wp.array(dtype=float),
@@ -346,8 +352,8 @@ def grid_update(
     collider_rot: wp.array(dtype=wp.quat),
     collider_vel: wp.array(dtype=wp.vec3),
     collider_omega: wp.array(dtype=wp.vec3),
-    collider_row: int,
-    n_colliders: int,
+    substep: int,
+    collider_count: int,
     n_objects: int,
     n_nodes: int,
     dims: wp.vec3i,
@@ -377,8 +383,8 @@ def grid_update(
 
     if n_objects > 1:
         at = batch * n_nodes + node
-        if present_count[at] > 1 and m > node_m[at] * CONTACT_MASS_FRACTION:
-            lead = ranked_object[lead_rank[at]]
+        if grid_present_count[at] > 1 and m > grid_node_m[at] * CONTACT_MASS_FRACTION:
+            lead = ranked_object[grid_lead_rank[at]]
             g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
                                    1.0 / dx)
             g_len = wp.length(g_lead)
@@ -388,10 +394,10 @@ def grid_update(
                 n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
                 if k == lead:
                     n = -n
-                m_total = present_m[at]
+                m_total = grid_present_m[at]
                 mu_k = param(friction, batch * n_objects + k, index)
-                mu_pair = 0.5 * (mu_k + (present_mu[at] - mu_k * m) / (m_total - m))
-                v_cm = divide(present_p[at], m_total)
+                mu_pair = 0.5 * (mu_k + (grid_present_mu[at] - mu_k * m) / (m_total - m))
+                v_cm = divide(grid_present_p[at], m_total)
                 rel = vel - v_cm
                 if wp.dot(rel, n) > 0.0:
                     # approaching: the others are a surface of outward normal -n
@@ -404,8 +410,8 @@ def grid_update(
         if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
             vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
     for c in range(MAX_COLLIDERS_W):
-        if c < n_colliders:
-            row = collider_row * n_colliders + c
+        if c < collider_count:
+            row = substep * collider_count + c
             r = x_node - collider_pos[row]
             local = wp.quat_rotate_inv(collider_rot[row], r)
             sd = collider_sdf(collider_shape[c], collider_size[c], local)
@@ -428,7 +434,7 @@ def grid_update(
 
 @wp.kernel
 def g2p(
-    x: wp.array(dtype=wp.vec3),
+    src_x: wp.array(dtype=wp.vec3),
     grid_v: wp.array(dtype=wp.vec3),
     obj: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
@@ -441,9 +447,9 @@ def g2p(
     lo: wp.vec3,
     dx: float,
     dt: float,
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    C_out: wp.array(dtype=wp.mat33),
+    dst_x: wp.array(dtype=wp.vec3),
+    dst_v: wp.array(dtype=wp.vec3),
+    dst_C: wp.array(dtype=wp.mat33),
 ):
     """Gather velocity and affine field from the particle's own object field and advect.
 
@@ -453,8 +459,8 @@ def g2p(
     batch = i // n_particles
     k = obj[i - batch * n_particles]
     inv_dx = 1.0 / dx
-    base = stencil_base(x[i], lo, inv_dx, dims)
-    fx = (x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    base = stencil_base(src_x[i], lo, inv_dx, dims)
+    fx = (src_x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
@@ -472,7 +478,7 @@ def g2p(
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
-    x_new = x[i] + new_v * dt
+    x_new = src_x[i] + new_v * dt
     if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
         # a substep below the plane is put back onto it and loses its velocity into it, so
@@ -486,16 +492,16 @@ def g2p(
             vn = wp.dot(new_v, n)
             if vn < 0.0:
                 new_v = new_v - n * vn
-    v_out[i] = new_v
-    C_out[i] = new_C
-    x_out[i] = x_new
+    dst_v[i] = new_v
+    dst_C[i] = new_C
+    dst_x[i] = x_new
 
 
 @wp.kernel
 def check_state(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    b: wp.array(dtype=wp.mat33),
+    state_x: wp.array(dtype=wp.vec3),
+    state_v: wp.array(dtype=wp.vec3),
+    state_b: wp.array(dtype=wp.mat33),
     obj: wp.array(dtype=int),
     n_particles: int,
     n_objects: int,
@@ -508,13 +514,13 @@ def check_state(
     batch = i // n_particles
     k = obj[i - batch * n_particles]
     row = 4 * (batch * n_objects + k)
-    speed = wp.length(v[i])
-    det = wp.determinant(b[i])
-    finite = wp.isfinite(x[i]) and wp.isfinite(v[i]) and wp.isfinite(det)
+    speed = wp.length(state_v[i])
+    det = wp.determinant(state_b[i])
+    finite = wp.isfinite(state_x[i]) and wp.isfinite(state_v[i]) and wp.isfinite(det)
     if finite:
         wp.atomic_max(stats, row, speed)
         wp.atomic_min(stats, row + 3, det)
-        p = x[i]
+        p = state_x[i]
         if p[0] < lo[0] or p[1] < lo[1] or p[2] < lo[2] or p[0] > hi[0] or p[1] > hi[1] or p[2] > hi[2]:
             wp.atomic_add(stats, row + 2, 1.0)
     else:

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -177,7 +177,11 @@ def shared_cells(cells: np.ndarray) -> float:
 
 
 class _State:
-    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T)."""
+    """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T).
+
+    A kernel reads them as ``<role>_x``, ... where the launch passes the state as ``<role>``
+    (``src``, ``dst``, ``state``; see ``_bind``).
+    """
 
     def __init__(self, n: int, device: str, requires_grad: bool) -> None:
         self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
@@ -198,11 +202,20 @@ class _Grid:
     """Grid arrays of one substep.
 
     Per (batch, object, node) fields, per (batch, node) contact sums (only with several
-    objects), and the effects' per-particle stress.
+    objects), and the effects' per-particle stress. Kernels read them as ``grid_<name>``.
+
+    ``box`` is the box of nodes (lower corner, size) that the last substep on this grid ran over
+    (``Simulator._active_box``; None before the first). Every write of a substep, and of its
+    adjoint, to a per-node array lands inside its box: P2G scatters into the particles'
+    stencils, the effects and the grid passes write at nodes with mass, and the adjoints write
+    the gradients of what these read. Outside it the arrays and their gradients stay zero, so on
+    the CPU ``zero`` and ``zero_grad`` clear that box only (about a tenth of the grid around a
+    scene); elsewhere the box is the whole grid.
     """
 
-    def __init__(self, n_batch: int, n_objects: int, n_nodes: int, n_particles: int, stress: bool,
-                 device: str, requires_grad: bool) -> None:
+    def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
+                 stress: bool, device: str, requires_grad: bool) -> None:
+        n_nodes = int(np.prod(dims))
         n_grid = n_batch * n_objects * n_nodes
         n_contact = n_batch * n_nodes if n_objects > 1 else 1
 
@@ -220,6 +233,11 @@ class _Grid:
         self.present_mu = zeros(n_contact, float)
         self.present_count = zeros(n_contact, int, grad=False)
         self.lead_rank = zeros(n_contact, int, grad=False)
+        self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
+        self._cpu = device == "cpu"
+        # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
+        self._field_grid = (n_batch * n_objects, *dims)
+        self._batch_grid = (n_batch, *dims) if n_objects > 1 else None
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -227,20 +245,94 @@ class _Grid:
         return (self.m, self.p, self.a, self.v, self.tau, self.node_m, self.present_m,
                 self.present_p, self.present_mu)
 
-    def zero(self) -> None:
-        for array in (*self.arrays, self.present_count, self.lead_rank):
-            array.zero_()
+    def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
+        """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
+        self._zero(self.tau, [self.m, self.p, self.a, self.v],
+                   [self.node_m, self.present_m, self.present_p, self.present_mu,
+                    self.present_count, self.lead_rank])
+        self.box = box
+
+    def zero_grad(self) -> None:
+        """Zero the gradients of ``arrays`` (see the class docstring)."""
+        self._zero(self.tau.grad, [a.grad for a in (self.m, self.p, self.a, self.v)],
+                   [a.grad for a in (self.node_m, self.present_m, self.present_p, self.present_mu)])
+
+    def _zero(self, per_particle: wp.array, per_field_node: list[wp.array],
+              per_batch_node: list[wp.array]) -> None:
+        per_particle.zero_()
+        for arrays, shape in ((per_field_node, self._field_grid), (per_batch_node, self._batch_grid)):
+            for array in arrays:
+                if not self._cpu or shape is None:  # or the single contact entry of one object
+                    array.zero_()
+                elif self.box is not None:  # else as allocated
+                    lo, size = self.box
+                    values = array.numpy()
+                    values.reshape(shape + values.shape[1:])[
+                        (slice(None), *(slice(start, start + n) for start, n in zip(lo, size, strict=True)))] = 0
+
+
+@dataclass(frozen=True)
+class _Colliders:
+    """What the grid update reads of the colliders (as ``collider_<name>``).
+
+    Their ``count``; per collider c its shape code (``COLLIDER_SHAPES``), size and friction; per
+    substep s of a frame and collider c, row s * count + c: position, rotation (world from
+    collider), linear and angular velocity (allocated for a frame's substeps by
+    ``Simulator._collider_poses``). One entry, unused, when there are none.
+    """
+
+    count: int
+    shape: wp.array
+    size: wp.array
+    friction: wp.array
+    pos: wp.array | None = None
+    rot: wp.array | None = None
+    vel: wp.array | None = None
+    omega: wp.array | None = None
+
+
+def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object]) -> list:
+    """The arguments of ``kernel``, each found by its parameter's name.
+
+    A parameter takes, in this order: the value ``given`` under its name; field ``<field>`` of
+    the bundle ``given`` as ``<bundle>`` when it is named ``<bundle>_<field>`` (a ``_State``
+    as ``src``, ``dst`` or ``state``, a ``_Grid`` as ``grid``, the ``_Colliders`` as
+    ``collider``); or the simulator's value of that name (``Simulator._scene``: sizes, grid
+    geometry, per-particle and per-object constants, every parameter's replicas with its dots
+    written as underscores, e.g. ``ground_height``). So the kernels' signatures are the only
+    lists of their arguments. A parameter found nowhere, or a given value no parameter takes,
+    is an error naming it.
+    """
+    args, used = [], set()
+    for arg in kernel.adj.args:
+        name = arg.label
+        bundle, _, member = name.partition("_")
+        if name in given:
+            args.append(given[name])
+            used.add(name)
+        elif bundle in given and hasattr(given[bundle], member):
+            args.append(getattr(given[bundle], member))
+            used.add(bundle)
+        elif name in scene:
+            args.append(scene[name])
+        else:
+            raise TypeError(f"kernel {kernel.key}: no value for its parameter {name!r} (not given, "
+                            f"not a field of a given bundle, not a simulator value)")
+    unused = sorted(set(given) - used)
+    if unused:
+        raise TypeError(f"kernel {kernel.key} takes nothing from {', '.join(unused)}")
+    return args
 
 
 @wp.kernel
 def _init_state(x0: wp.array(dtype=wp.vec3), v0: wp.array(dtype=wp.vec3), n_particles: int,
-                x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-                C: wp.array(dtype=wp.mat33), b: wp.array(dtype=wp.mat33)):
+                state_x: wp.array(dtype=wp.vec3), state_v: wp.array(dtype=wp.vec3),
+                state_C: wp.array(dtype=wp.mat33), state_b: wp.array(dtype=wp.mat33)):
     i = wp.tid()
-    x[i] = x0[i % n_particles]
-    v[i] = v0[i]
-    C[i] = wp.mat33(0.0)
-    b[i] = wp.identity(n=3, dtype=float)
+    state_x[i] = x0[i % n_particles]
+    state_v[i] = v0[i]
+    state_C[i] = wp.mat33(0.0)
+    state_b[i] = wp.identity(n=3, dtype=float)
 
 
 @wp.kernel
@@ -329,6 +421,16 @@ class Simulator:
         self.set_volume(particles.volume)
         self.set_initial_velocity(particles.v)
         self._setup_colliders()
+        # what the kernels read besides the bundles a launch passes (_bind); these arrays live
+        # as long as the simulator (parameter values are written into their replicas)
+        self._scene = {
+            "n_particles": self.n_particles, "n_objects": self.n_objects, "n_nodes": self.n_nodes,
+            "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
+            "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
+            "family": self.family, "normal_rank": self.normal_rank,
+            "ranked_object": self.ranked_object, "has_ground": int(config.ground is not None),
+            **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
+        }
         self._stress = any(e.has_stress for e in self.effects)
         self._record: dict | None = None
         self._final: _State | None = None
@@ -337,6 +439,8 @@ class Simulator:
         self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
         self._graphs: dict[tuple, wp.context.Graph] = {}
         self._seen: set[tuple] = set()
+        self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
+        self._labels: dict[wp.Kernel, dict[str, int]] = {}
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -407,10 +511,10 @@ class Simulator:
         d, colliders = self.device, self.config.colliders
         shapes = [COLLIDER_SHAPES[c.shape] for c in colliders] or [0]
         sizes = [tuple(c.size) + (0.0,) * (3 - len(c.size)) for c in colliders] or [(0.0,) * 3]
-        self._collider_shape = wp.array(shapes, dtype=int, device=d)
-        self._collider_size = wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d)
-        self._collider_friction = wp.array([c.friction for c in colliders] or [0.0], dtype=float,
-                                           device=d)
+        self._colliders = _Colliders(
+            count=len(colliders), shape=wp.array(shapes, dtype=int, device=d),
+            size=wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d),
+            friction=wp.array([c.friction for c in colliders] or [0.0], dtype=float, device=d))
         self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
@@ -419,10 +523,11 @@ class Simulator:
         rows = n_sub * len(colliders) if colliders else 1
         if rows != self._collider_rows:
             d = self.device
-            self._collider_pos = wp.zeros(rows, dtype=wp.vec3, device=d)
-            self._collider_rot = wp.zeros(rows, dtype=wp.quat, device=d)
-            self._collider_vel = wp.zeros(rows, dtype=wp.vec3, device=d)
-            self._collider_omega = wp.zeros(rows, dtype=wp.vec3, device=d)
+            self._colliders = replace(
+                self._colliders, pos=wp.zeros(rows, dtype=wp.vec3, device=d),
+                rot=wp.zeros(rows, dtype=wp.quat, device=d),
+                vel=wp.zeros(rows, dtype=wp.vec3, device=d),
+                omega=wp.zeros(rows, dtype=wp.vec3, device=d))
             self._collider_rows = rows
             self._forget_graphs()
         if not colliders:
@@ -437,10 +542,10 @@ class Simulator:
                 t = t0 + s * dt
                 pos[s, c], rot[s, c] = collider.pose(t)
                 vel[s, c], omega[s, c] = collider.velocity(t)
-        self._collider_pos.assign(pos.reshape(-1, 3))
-        self._collider_rot.assign(rot.reshape(-1, 4))
-        self._collider_vel.assign(vel.reshape(-1, 3))
-        self._collider_omega.assign(omega.reshape(-1, 3))
+        self._colliders.pos.assign(pos.reshape(-1, 3))
+        self._colliders.rot.assign(rot.reshape(-1, 4))
+        self._colliders.vel.assign(vel.reshape(-1, 3))
+        self._colliders.omega.assign(omega.reshape(-1, 3))
 
     def set_initial_velocity(self, v: np.ndarray) -> None:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
@@ -513,50 +618,67 @@ class Simulator:
     def _values(self, effect: Effect) -> dict[str, wp.array]:
         return {s.name: self.params[f"{effect.name}.{s.name}"] for s in effect.params}
 
+    def _run(self, kernel: wp.Kernel, dim: int, **given: object) -> None:
+        """Launch ``kernel`` over ``dim`` threads with its arguments found by name (``_bind``).
+
+        On the CPU a launch repeats a recorded command (``wp.Launch``) of the same kernel and
+        bundles, with the values given by name set anew: packing all of a kernel's arguments
+        costs 12-50 us, about what a substep's small kernels take to run. The command keeps its
+        bundles, so their arrays outlive it. On a tape (``wp.context.runtime.tape``, the one
+        ``wp.launch`` records on) the launch is recorded as ``wp.launch`` records it.
+        """
+        if self.device != "cpu":
+            wp.launch(kernel, dim=dim, inputs=_bind(kernel, given, self._scene), device=self.device)
+            return
+        labels = self._labels.get(kernel)
+        if labels is None:
+            labels = self._labels[kernel] = {arg.label: i for i, arg in enumerate(kernel.adj.args)}
+        # a given value that is a parameter is set at each launch; a bundle picks the command
+        key = (kernel, *((name, None if name in labels else value) for name, value in given.items()))
+        recorded = self._commands.get(key)
+        if recorded is None:
+            args = _bind(kernel, given, self._scene)
+            command = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
+            recorded = self._commands[key] = (command, args,
+                                              [(labels[n], n) for n in given if n in labels])
+        command, args, values = recorded
+        args = list(args)
+        for index, name in values:
+            args[index] = given[name]
+            command.set_param_at_index(index, given[name])
+        command.set_dim(dim)
+        command.launch()
+        tape = wp.context.runtime.tape
+        if tape is not None:
+            tape.record_launch(kernel, dim, 0, args, [], self.device)
+
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float) -> None:
+        """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
+
+        ``row`` is the substep's index in its frame (which collider poses apply).
+        """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
-        p = self.params
-        dims = wp.vec3i(*self.dims)
-        lo = wp.vec3(*self.lo)
-        grid.zero()
+        box_lo, box_dims = self._active_box(src)
+        grid.zero((box_lo, box_dims))
         if self._stress:
             view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        wp.launch(kernels.p2g, dim=B * N, device=d, inputs=[
-            src.x, src.v, src.C, src.b, self.volume, grid.tau, self.obj, self.family,
-            p["E"], p["nu"], p["yield_stress"], p["friction_angle"], p["bulk_modulus"],
-            p["viscosity"], p["density"], N, K, G, dims, lo, self.dx, dt,
-        ], outputs=[dst.b, grid.m, grid.p])
-        view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d)
+        self._run(kernels.p2g, B * N, src=src, dst=dst, grid=grid, dt=dt)
+        view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d, box_lo,
+                        box_dims)
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
-        box_lo, box_dims = self._active_box(src)
-        n_box = B * K * int(np.prod(box_dims))
-        box = [dims, wp.vec3i(*box_lo), wp.vec3i(*box_dims)]
+        n_box = view.n_box
+        box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
         if K > 1:
-            wp.launch(kernels.node_mass, dim=n_box, device=d, inputs=[grid.m, G, K, *box],
-                      outputs=[grid.node_m])
-            wp.launch(kernels.contact_totals, dim=n_box, device=d, inputs=[
-                grid.m, grid.p, grid.a, p["friction"], self.normal_rank, grid.node_m, G, K, *box,
-                dt,
-            ], outputs=[grid.present_m, grid.present_p, grid.present_mu, grid.present_count,
-                        grid.lead_rank])
-        wp.launch(kernels.grid_update, dim=n_box, device=d, inputs=[
-            grid.m, grid.p, grid.a, p["friction"], grid.node_m, grid.present_m, grid.present_p,
-            grid.present_mu, grid.present_count, grid.lead_rank, self.ranked_object,
-            p["ground.height"], p["ground.normal"], p["ground.friction"],
-            int(self.config.ground is not None),
-            self._collider_shape, self._collider_size, self._collider_friction,
-            self._collider_pos, self._collider_rot, self._collider_vel, self._collider_omega,
-            row, len(self.config.colliders), K, G, *box, lo, self.dx, dt,
-        ], outputs=[grid.v])
-        wp.launch(kernels.g2p, dim=B * N, device=d, inputs=[
-            src.x, grid.v, self.obj, p["ground.height"], p["ground.normal"],
-            int(self.config.ground is not None), N, K, G, dims, lo, self.dx, dt,
-        ], outputs=[dst.x, dst.v, dst.C])
+            self._run(kernels.node_mass, n_box, grid=grid, **box)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt)
+        self._run(kernels.grid_update, n_box, grid=grid, collider=self._colliders, substep=row,
+                  **box, dt=dt)
+        self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
@@ -571,8 +693,8 @@ class Simulator:
         """
         if self.device != "cpu":
             return (0, 0, 0), self.dims
-        x = state.x.numpy()
-        span = np.array([x.min(axis=0), x.max(axis=0)], dtype=np.float64)
+        x = np.ascontiguousarray(state.x.numpy().T)  # a row reduces 20x faster than a column
+        span = np.array([x.min(axis=1), x.max(axis=1)], dtype=np.float64)
         if not np.all(np.isfinite(span)):
             return (0, 0, 0), self.dims  # a diverging state: leave it to the frame's check
         top = np.asarray(self.dims) - 3
@@ -596,9 +718,11 @@ class Simulator:
         ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own
         dL/dx, which is in ``seed``) and leaves holding dL/d(state) at its start.
         """
-        for buffer in [*states, *grids]:
-            for array in buffer.arrays:
+        for state in states:
+            for array in state.arrays:
                 array.grad.zero_()
+        for grid in grids:
+            grid.zero_grad()
         self.params.zero_replica_grad()
         tape = wp.Tape()
         with tape:
@@ -640,15 +764,14 @@ class Simulator:
         wp.capture_launch(graph)
 
     def _forget_graphs(self) -> None:
-        """Drop the captured graphs (the arrays they were captured on are being replaced)."""
+        """Drop the captured graphs and recorded commands (their arrays are being replaced)."""
         self._graphs.clear()
         self._seen.clear()
+        self._commands.clear()
 
     def _check(self, state: _State, stats: wp.array) -> None:
         """Launch the state check of one frame into ``stats`` (B * K * 4, see ``_diverged``)."""
-        wp.launch(kernels.check_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[state.x, state.v, state.b, self.obj, self.n_particles, self.n_objects,
-                          wp.vec3(*self.lo), wp.vec3(*self.hi)], outputs=[stats])
+        self._run(kernels.check_state, self.n_batch * self.n_particles, state=state, stats=stats)
 
     def _diverged(self, stats: np.ndarray, frame: int, dt: float) -> None:
         """Raise ``SimulationDiverged`` if a frame's check statistics say so."""
@@ -685,9 +808,7 @@ class Simulator:
             array.assign(np.ascontiguousarray(self._inward(values)).reshape(B * N, *values.shape[2:]))
 
     def _initial_state(self, state: _State) -> None:
-        wp.launch(_init_state, dim=self.n_batch * self.n_particles, device=self.device,
-                  inputs=[self.x0, self.v0, self.n_particles],
-                  outputs=[state.x, state.v, state.C, state.b])
+        self._run(_init_state, self.n_batch * self.n_particles, state=state)
 
     def _keep_positions(self, state: _State, positions: wp.array, frame: int) -> None:
         """Copy ``state``'s positions, in the callers' order, into ``frame``'s of ``positions``."""
@@ -733,7 +854,7 @@ class Simulator:
         B, N = self.n_batch, self.n_particles
         if self._buffers is None:
             self._buffers = ([_State(B * N, self.device, False) for _ in range(2)],
-                             _Grid(B, self.n_objects, self.n_nodes, B * N, self._stress,
+                             _Grid(B, self.n_objects, self.dims, B * N, self._stress,
                                    self.device, False))
         states, grid = self._buffers
         if initial is None:
@@ -819,7 +940,7 @@ class Simulator:
             total = self.n_batch * self.n_particles
             self._tape_buffers = (
                 [_State(total, self.device, True) for _ in range(n_sub + 1)],
-                [_Grid(self.n_batch, self.n_objects, self.n_nodes, total, self._stress,
+                [_Grid(self.n_batch, self.n_objects, self.dims, total, self._stress,
                        self.device, True) for _ in range(n_sub)],
                 _State(total, self.device, False),
                 wp.zeros(total, dtype=wp.vec3, device=self.device),
