@@ -353,7 +353,7 @@ def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds()
     for name in ("m", "p", "a", "v", "node_m", "present_m", "present_p", "present_mu",
                  "present_count", "lead_rank"):
         fresh, reused = (getattr(g, name).numpy() for g in grids)
-        assert np.count_nonzero(fresh) > 0 and np.array_equal(fresh, reused), name
+        assert np.count_nonzero(fresh) > 0 and _equal(fresh, reused), name
 
 
 def test_gradients_after_an_earlier_backward_elsewhere_equal_a_fresh_simulators():
@@ -367,6 +367,13 @@ def test_gradients_after_an_earlier_backward_elsewhere_equal_a_fresh_simulators(
         traj = sim.rollout(2, grad=True, initial=start)
         results.append(sim.backward(np.random.default_rng(0).normal(size=traj.shape).astype(np.float32)))
     for name in ("E", "nu", "friction", "ground.friction", "gravity.g"):
-        assert np.array_equal(results[0].params[name], results[1].params[name]), name
-    assert np.array_equal(results[0].v0, results[1].v0)
+        assert _equal(results[0].params[name], results[1].params[name]), name
+    assert _equal(results[0].v0, results[1].v0)
     assert np.abs(results[0].params["E"]).max() > 0
+
+
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding."""
+    if DEVICE == "cpu":
+        return np.array_equal(a, b)
+    return np.allclose(a, b, rtol=1e-4, atol=1e-6 * np.abs(a).max())
