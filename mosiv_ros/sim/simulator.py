@@ -176,18 +176,56 @@ def shared_cells(cells: np.ndarray) -> float:
     return float(np.mean(cells[1:] == cells[:-1])) if len(cells) > 1 else 1.0
 
 
+class _Arena:
+    """Zero-initialised arrays that share one allocation, so that one memset clears them all.
+
+    A substep's grid is ten arrays and a frame's backward clears the gradients of some thousand
+    (four per state and nine per grid, for each of its substeps): on a GPU each clear is a
+    memset node of about a microsecond whatever its size, which at the few thousand particles
+    of an identification was a fifth of a frame's backward (benchmarks/RESULTS.md).
+    """
+
+    ALIGN = 16
+
+    def __init__(self, specs: list[tuple[int, type]], device: str) -> None:
+        offsets, total = [], 0
+        for n, dtype in specs:
+            offsets.append(total)
+            total += -(-n * wp.types.type_size_in_bytes(dtype) // self.ALIGN) * self.ALIGN
+        self.memory = wp.zeros(max(total, self.ALIGN) // 4, dtype=wp.float32, device=device)
+        self.arrays = [wp.array(ptr=self.memory.ptr + offset, dtype=dtype, shape=(n,),
+                                device=device, owner=False)
+                       for offset, (n, dtype) in zip(offsets, specs, strict=True)]
+
+    def zero(self) -> None:
+        self.memory.zero_()
+
+
+def _arrays(specs: list[tuple[int, type]], device: str,
+            requires_grad: bool) -> tuple[list[wp.array], _Arena, _Arena | None]:
+    """Arrays of ``specs`` in one arena, their gradients (if asked) in another."""
+    values = _Arena(specs, device)
+    grads = _Arena(specs, device) if requires_grad else None
+    if grads is not None:
+        for array, grad in zip(values.arrays, grads.arrays, strict=True):
+            array.grad = grad
+    return values.arrays, values, grads
+
+
 class _State:
     """Particle state arrays of all batches: x, v, C (affine field), b (elastic F F^T).
 
     A kernel reads them as ``<role>_x``, ... where the launch passes the state as ``<role>``
-    (``src``, ``dst``, ``state``; see ``_bind``).
+    (``src``, ``dst``, ``state``; see ``_bind``). The gradients share one allocation
+    (``_Arena``): ``zero_grad`` clears them at once.
     """
 
     def __init__(self, n: int, device: str, requires_grad: bool) -> None:
-        self.x = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.v = wp.zeros(n, dtype=wp.vec3, device=device, requires_grad=requires_grad)
-        self.C = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
-        self.b = wp.zeros(n, dtype=wp.mat33, device=device, requires_grad=requires_grad)
+        (self.x, self.v, self.C, self.b), self._values, self._grads = _arrays(
+            [(n, wp.vec3), (n, wp.vec3), (n, wp.mat33), (n, wp.mat33)], device, requires_grad)
+
+    def zero_grad(self) -> None:
+        self._grads.zero()
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -219,20 +257,14 @@ class _Grid:
         n_grid = n_batch * n_objects * n_nodes
         n_contact = n_batch * n_nodes if n_objects > 1 else 1
 
-        def zeros(n, dtype, grad=requires_grad):
-            return wp.zeros(n, dtype=dtype, device=device, requires_grad=grad)
-
-        self.m = zeros(n_grid, float)
-        self.p = zeros(n_grid, wp.vec3)
-        self.a = zeros(n_grid, wp.vec3)
-        self.v = zeros(n_grid, wp.vec3)
-        self.tau = zeros(n_particles if stress else 0, wp.mat33)
-        self.node_m = zeros(n_contact, float)
-        self.present_m = zeros(n_contact, float)
-        self.present_p = zeros(n_contact, wp.vec3)
-        self.present_mu = zeros(n_contact, float)
-        self.present_count = zeros(n_contact, int, grad=False)
-        self.lead_rank = zeros(n_contact, int, grad=False)
+        # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
+        (self.m, self.p, self.a, self.v, self.tau, self.node_m, self.present_m, self.present_p,
+         self.present_mu), self._values, self._grads = _arrays(
+            [(n_grid, float), (n_grid, wp.vec3), (n_grid, wp.vec3), (n_grid, wp.vec3),
+             (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, float),
+             (n_contact, wp.vec3), (n_contact, float)], device, requires_grad)
+        self._counts = _Arena([(n_contact, int), (n_contact, int)], device)
+        self.present_count, self.lead_rank = self._counts.arrays
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
         # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
@@ -247,22 +279,30 @@ class _Grid:
 
     def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
         """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
-        self._zero(self.tau, [self.m, self.p, self.a, self.v],
-                   [self.node_m, self.present_m, self.present_p, self.present_mu,
-                    self.present_count, self.lead_rank])
+        if self._cpu:
+            self._zero(self.tau, [self.m, self.p, self.a, self.v],
+                       [self.node_m, self.present_m, self.present_p, self.present_mu,
+                        self.present_count, self.lead_rank])
+        else:
+            self._values.zero()
+            self._counts.zero()
         self.box = box
 
     def zero_grad(self) -> None:
         """Zero the gradients of ``arrays`` (see the class docstring)."""
-        self._zero(self.tau.grad, [a.grad for a in (self.m, self.p, self.a, self.v)],
-                   [a.grad for a in (self.node_m, self.present_m, self.present_p, self.present_mu)])
+        if self._cpu:
+            self._zero(self.tau.grad, [a.grad for a in (self.m, self.p, self.a, self.v)],
+                       [a.grad for a in (self.node_m, self.present_m, self.present_p,
+                                         self.present_mu)])
+        else:
+            self._grads.zero()
 
     def _zero(self, per_particle: wp.array, per_field_node: list[wp.array],
               per_batch_node: list[wp.array]) -> None:
         per_particle.zero_()
         for arrays, shape in ((per_field_node, self._field_grid), (per_batch_node, self._batch_grid)):
             for array in arrays:
-                if not self._cpu or shape is None:  # or the single contact entry of one object
+                if shape is None:  # the single contact entry of one object
                     array.zero_()
                 elif self.box is not None:  # else as allocated
                     lo, size = self.box
@@ -719,8 +759,7 @@ class Simulator:
         dL/dx, which is in ``seed``) and leaves holding dL/d(state) at its start.
         """
         for state in states:
-            for array in state.arrays:
-                array.grad.zero_()
+            state.zero_grad()
         for grid in grids:
             grid.zero_grad()
         self.params.zero_replica_grad()
