@@ -37,6 +37,7 @@ import logging
 import math
 import os
 import queue
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import TYPE_CHECKING
@@ -74,6 +75,9 @@ class GlobalSearch:
         self.identifier = identifier
         self.simulators: dict[tuple[int, int], Simulator] = {}
         """The batched simulators kept, by (rows, worker slot)."""
+        self.timing: dict[str, float] = {}
+        """Of the last ``batch_object_losses``: ``rollout_s`` and ``score_s``, each summed over its
+        rollouts (on several CPU cores the sums exceed the wall time)."""
 
     def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
                      frames: int | None = None, together: bool | None = None) -> np.ndarray:
@@ -122,7 +126,7 @@ class GlobalSearch:
             for slot in range(workers):
                 idle.put(self._batch(1, slot))
 
-            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
                 sim = idle.get()
                 try:
                     return self._score(sim, self._configure(sim, row[None]), frames)
@@ -135,8 +139,10 @@ class GlobalSearch:
         else:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 results = list(pool.map(lambda job: job(), jobs))
-        return (np.concatenate([total for total, _ in results]),
-                np.concatenate([per for _, per in results]))
+        self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
+                               strict=True))
+        return (np.concatenate([total for total, *_ in results]),
+                np.concatenate([per for _, per, _ in results]))
 
     def _batch(self, n: int, slot: int = 0) -> Simulator:
         """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
@@ -171,16 +177,21 @@ class GlobalSearch:
         return np.stack([boundary.inside(o[fit.index]) for o in offsets])
 
     def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
-               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Roll the configured ``batch`` out over ``frames`` frames and score each row."""
+               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+        """Roll the configured ``batch`` out over ``frames`` frames and score each row.
+
+        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
+        """
         fit = self.identifier
         obs, s = fit.problem.observations, fit.settings
         n = batch.n_batch
+        tick = time.perf_counter()
         try:
             traj = batch.rollout(frames, substeps=substeps)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
-            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan)
+            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
+        rolled = time.perf_counter()
 
         def frame_loss(job: tuple[int, int]) -> tuple[float, np.ndarray]:
             b, f = job
@@ -208,7 +219,7 @@ class GlobalSearch:
                     fit.torch_device)
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
-        return total, per
+        return total, per, (rolled - tick, time.perf_counter() - rolled)
 
     def box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper coordinates the first round samples around ``u`` (module docstring)."""
