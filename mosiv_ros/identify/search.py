@@ -43,8 +43,15 @@ from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
-from mosiv_ros.identify.losses import geometry_loss, silhouette_object_losses, track_loss
+from mosiv_ros.identify.losses import (
+    geometry_loss,
+    silhouette_object_losses,
+    tensor_terms,
+    torch_threads,
+    track_loss,
+)
 from mosiv_ros.sim import Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
 from mosiv_ros.simulation import OFFSET
@@ -109,8 +116,11 @@ class GlobalSearch:
         if together is None:
             together = cuda
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
-        for f in range(1, frames + 1):
-            obs.trees(f)  # built once, before threads share them
+        if fit.tensor_device is not None:  # built once, before threads share them
+            obs.tensors(fit.tensor_device)
+        else:
+            for f in range(1, frames + 1):
+                obs.trees(f)
         # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
         # slices of a batch) run side by side on every core, with the same results as in turn.
         workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
@@ -182,8 +192,7 @@ class GlobalSearch:
 
         Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
         """
-        fit = self.identifier
-        obs, s = fit.problem.observations, fit.settings
+        obs = self.identifier.problem.observations
         n = batch.n_batch
         tick = time.perf_counter()
         try:
@@ -192,6 +201,21 @@ class GlobalSearch:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
         rolled = time.perf_counter()
+        if self.identifier.tensor_device is not None:
+            total, per = self._tensor_scores(traj, inside, frames)
+        else:
+            total, per = self._frame_scores(traj, inside, frames)
+        return total, per, (rolled - tick, time.perf_counter() - rolled)
+
+    def _frame_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """The losses (B,) and their per-object shares (B, K) of the rows of rollout ``traj``.
+
+        On the CPU: the Chamfer and track terms of each row and frame in threads (KD-tree
+        queries release the GIL), the silhouettes row by row.
+        """
+        fit = self.identifier
+        obs, s = fit.problem.observations, fit.settings
+        n = traj.shape[1]
 
         def frame_loss(job: tuple[int, int]) -> tuple[float, np.ndarray]:
             b, f = job
@@ -205,7 +229,6 @@ class GlobalSearch:
                 value, per = value + s.loss.track_weight * tracked, per + s.loss.track_weight * shares
             return value, per
 
-        # KD-tree queries release the GIL: score candidates and frames in threads
         jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             scored = list(pool.map(frame_loss, jobs))
@@ -215,11 +238,24 @@ class GlobalSearch:
             for b in range(n):  # as Identifier.window_loss: the particles inside the surface
                 silhouette = s.loss.silhouette_weight / frames * silhouette_object_losses(
                     traj[1:frames + 1, b][:, inside[b]], fit.index[inside[b]], obs.object_ids,
-                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object,
-                    fit.torch_device)
+                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object)
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
-        return total, per, (rolled - tick, time.perf_counter() - rolled)
+        return total, per
+
+    def _tensor_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """``_frame_scores`` of every row and frame at once, as tensors on ``tensor_device``."""
+        fit = self.identifier
+        obs, loss, device = fit.problem.observations, fit.settings.loss, fit.tensor_device
+        with torch_threads(device), torch.no_grad():
+            x = torch.as_tensor(traj[1:frames + 1], device=device).to(torch.float64).transpose(0, 1)
+            terms = tensor_terms(x, torch.as_tensor(inside, device=device), fit.index, obs.tensors(device),
+                                 obs.object_ids, slice(1, frames + 1), loss, fit.settings.splat_radius)
+            shares = loss.silhouette_weight / frames * terms.silhouette
+            total = ((loss.chamfer_weight * terms.chamfer_total + loss.track_weight * terms.track.sum(dim=2))
+                     .mean(dim=1) + shares.sum(dim=1))
+            per = (loss.chamfer_weight * terms.chamfer + loss.track_weight * terms.track).mean(dim=1) + shares
+        return total.cpu().numpy(), per.cpu().numpy()
 
     def box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper coordinates the first round samples around ``u`` (module docstring)."""
