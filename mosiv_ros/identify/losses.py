@@ -111,15 +111,14 @@ NEAREST_BLOCK = (16, 128)
 block and an exhaustive search of the few blocks near it; about sqrt(M) / 2 targets a block (M
 the targets) kept that lowest on the sample bags (about 1,200 distances and bounds a query, not
 15,000, for 15,000 observed points)."""
-NEAREST_BUDGET = 1 << 24
-"""Query-block pairs (bounds, or squared distances to a block's points) ``nearest`` takes at
-once; each holds some 30 to 100 bytes while it does (0.5 to 1.6 GB)."""
+NEAREST_BUDGET = 1 << 25
+"""Query-block pairs (bounds), or query-point pairs (squared distances), ``nearest`` takes at
+once; each holds some 40 to 60 bytes while it does (1.3 to 2 GB)."""
 
 
 def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Squared distances of broadcast points (..., 3), summed as the KD-tree sums them."""
-    d = a - b
-    return d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2
+    return (a[..., 0] - b[..., 0]) ** 2 + (a[..., 1] - b[..., 1]) ** 2 + (a[..., 2] - b[..., 2]) ** 2
 
 
 def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -174,6 +173,19 @@ def _block_squared(q: torch.Tensor, points: torch.Tensor, valid: torch.Tensor) -
     return torch.where(valid, _squared(q[..., None, :], points), math.inf)
 
 
+def _box_squared(q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """(J, c, B) squared distances of queries (J, c, 3) to boxes (J, B, 3), at most any point's in a box.
+
+    Summed as ``_squared`` sums, of gaps rounded as a point's differences are: rounding is
+    monotone, so no point of a box is nearer than its box.
+    """
+    total = torch.zeros((), dtype=q.dtype, device=q.device)
+    for a in range(3):  # one axis at a time: (J, c, B) temporaries, not (J, c, B, 3)
+        qa = q[:, :, None, a]
+        total = total + torch.maximum(lo[:, None, :, a] - qa, qa - hi[:, None, :, a]).clamp(min=0) ** 2
+    return total
+
+
 def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Tensor,
             target_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The exact nearest valid target of each valid query, for J jobs at once, on their device.
@@ -203,9 +215,7 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
     for first in range(0, n, step):
         q = queries[:, first:first + step]
         c = q.shape[1]
-        gap = [torch.maximum(lo[:, None, :, a] - q[:, :, None, a], q[:, :, None, a] - hi[:, None, :, a])
-               .clamp(min=0) for a in range(3)]
-        lower = gap[0] ** 2 + gap[1] ** 2 + gap[2] ** 2  # (J, c, B): at most any point's in the block
+        lower = _box_squared(q, lo, hi)  # (J, c, B)
         closest = _squared(q[:, :, None], centroid[:, None]).argmin(dim=2)
         bound = _block_squared(q, points[jobs, closest], valid[jobs, closest]).amin(dim=2)
         keep = (lower <= bound[..., None]) & torch.isfinite(lower) & query_valid[:, first:first + c, None]
@@ -342,23 +352,21 @@ def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarra
     return Terms(chamfer, total, track, silhouette)
 
 
-def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: torch.Tensor,
-                height: int, width: int) -> torch.Tensor:
+def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int, height: int,
+                width: int) -> torch.Tensor:
     """(I, H, W) soft masks A = 1 - prod_i (1 - opacity w_i(p)) of I images, Gaussian w_i.
 
     ``uv`` (I, M, 2) pixel positions, ``sigma`` (I, M) splat radii in pixels, ``valid`` (I, M)
-    the particles that count (in front of the camera), ``reach`` (I,) the pixels a splat
-    reaches either way in each image (whole numbers: 3 sigma, ``_reach``).
+    the particles that count (in front of the camera), ``reach`` the pixels a splat reaches
+    either way (3 sigma, ``_reach``).
     """
     n_images = uv.shape[0]
-    top = int(reach.max())
-    offsets = torch.arange(-top, top + 1, dtype=uv.dtype, device=uv.device)
+    offsets = torch.arange(-reach, reach + 1, dtype=uv.dtype, device=uv.device)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
     base = torch.round(uv.detach())
     px = base[..., 0, None] + dx.reshape(1, 1, -1)
     py = base[..., 1, None] + dy.reshape(1, 1, -1)
-    near = torch.maximum(dx.abs(), dy.abs()).reshape(1, 1, -1) <= reach.reshape(-1, 1, 1)
-    inside = (px >= 0) & (px < width) & (py >= 0) & (py < height) & valid[..., None] & near
+    inside = (px >= 0) & (px < width) & (py >= 0) & (py < height) & valid[..., None]
     d2 = (px - uv[..., 0, None]) ** 2 + (py - uv[..., 1, None]) ** 2
     w = SPLAT_OPACITY * torch.exp(-d2 / (2 * sigma[..., None] ** 2))
     log_clear = torch.log1p(-w)[inside]
@@ -368,13 +376,14 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reac
     return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_images, height, width)
 
 
-def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """(R,) the pixels a splat reaches either way in each row's images.
+def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> list[int]:
+    """The pixels a splat reaches either way in each row's images (R,); 0 for a row with none.
 
     3 of the largest ``sigma`` (R, F, M) of the row's ``valid`` particles, rounded up, 1 to 8.
     """
     largest = torch.where(valid, sigma.detach(), -math.inf).amax(dim=(1, 2))
-    return torch.clamp(torch.ceil(3 * largest), 1, 8)
+    reach = torch.where(largest > -math.inf, torch.clamp(torch.ceil(3 * largest), 1, 8), 0.0)
+    return [int(r) for r in reach.tolist()]
 
 
 @contextmanager
@@ -490,19 +499,19 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
         observed = masks.masks[v][shown]
         for g, (mine, ids) in enumerate(groups):
             valid = front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
-            if not bool(valid.any()):
-                continue
-            reach = _reach(sigma[:, :, mine], valid).repeat_interleave(len(local))
-            soft = _soft_masks(uv[:, :, mine].flatten(0, 1), sigma[:, :, mine].flatten(0, 1),
-                               valid.flatten(0, 1), reach, view.height, view.width)
-            soft = soft.unflatten(0, (rows, len(local)))
-            target = torch.isin(observed, torch.as_tensor(ids, device=device)).to(soft.dtype)
-            known = ((target > 0) | (observed == 0)).to(soft.dtype)
+            reach = _reach(sigma[:, :, mine], valid)
+            target = torch.isin(observed, torch.as_tensor(ids, device=device)).to(x.dtype)
+            known = ((target > 0) | (observed == 0)).to(x.dtype)
             pixels = known.sum(dim=(1, 2))
-            # frames where every pixel is another object's, or no particle is in view: nothing
-            counted = (pixels > 0) & valid.any(dim=2)
-            per_frame = ((soft - target).abs() * known).sum(dim=(2, 3)) / pixels.clamp(min=1)
-            totals[g] = totals[g] + (per_frame * counted * masks.frame_weight[shown]).sum(dim=1)
+            for value in sorted(set(reach) - {0}):  # rows of one reach together (no particle in view: 0)
+                same = torch.as_tensor([r for r, v in enumerate(reach) if v == value], device=device)
+                soft = _soft_masks(uv[same][:, :, mine].flatten(0, 1), sigma[same][:, :, mine].flatten(0, 1),
+                                   valid[same].flatten(0, 1), value, view.height, view.width)
+                soft = soft.unflatten(0, (len(same), len(local)))
+                # frames where every pixel is another object's, or no particle is in view: nothing
+                counted = (pixels > 0) & valid[same].any(dim=2)
+                per_frame = ((soft - target).abs() * known).sum(dim=(2, 3)) / pixels.clamp(min=1)
+                totals[g] = totals[g].index_add(0, same, (per_frame * counted * masks.frame_weight[shown]).sum(dim=1))
     return torch.stack(totals, dim=1)
 
 
