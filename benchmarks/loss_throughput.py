@@ -1,6 +1,6 @@
 """The identifier's loss path on a sample bag: a window's loss with its gradient, the batched search.
 
-    python benchmarks/loss_throughput.py bags/elastic_on_plastic --device cuda:0 \\
+    python benchmarks/loss_throughput.py bags/elastic_on_plastic --device cuda:0 --compare \\
         --out out/loss_throughput_cuda.json
     python benchmarks/loss_throughput.py bags/elastic_on_plastic --device cpu --rows 2 --repeats 1
 
@@ -18,8 +18,10 @@ velocities) and times:
   the CPU each row at its own), split into rollout and scoring (``GlobalSearch.timing``); one
   untimed call first.
 
-Each figure is the mean of ``--repeats`` timed calls (their minimum too). The losses themselves
-are in the JSON, to compare devices. Writes JSON.
+The losses are computed as the identifier chooses (``Identifier.tensor_device``: as tensors on
+a GPU, by KD-trees on the CPU); ``--compare`` times both paths on the same device, interleaved
+(tensors, KD-trees, tensors, ...). Each figure is the mean of ``--repeats`` timed calls (their
+minimum too). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
 """
 
 from __future__ import annotations
@@ -58,46 +60,55 @@ def identifier_of(bag: Path, config: RunConfig) -> tuple[Identifier, np.ndarray]
     return identifier, velocity
 
 
-def timed(call, timing: dict, repeats: int) -> dict:
-    """``call()`` ``repeats`` times: mean and least wall time, mean of each of ``timing``'s parts."""
-    walls, parts = [], []
+def timed(identifier: Identifier, paths: dict[str, str | None], call, timing, repeats: int) -> dict:
+    """``call()`` ``repeats`` times on each loss path, the paths interleaved (A, B, A, B).
+
+    ``paths`` names the ``Identifier.tensor_device`` of each; per path the mean and least wall
+    time, the mean of each of ``timing()``'s parts, and the last call's result.
+    """
+    runs = {name: [] for name in paths}
     for _ in range(repeats):
-        tick = time.perf_counter()
-        call()
-        walls.append(time.perf_counter() - tick)
-        parts.append(dict(timing()))
-    return {"wall_s": float(np.mean(walls)), "wall_min_s": float(np.min(walls)),
-            **{key: float(np.mean([p[key] for p in parts])) for key in parts[0]}}
+        for name, device in paths.items():
+            identifier.tensor_device = device
+            tick = time.perf_counter()
+            result = call()
+            runs[name].append((time.perf_counter() - tick, dict(timing()), result))
+    return {name: {"wall_s": float(np.mean([w for w, _, _ in r])), "wall_min_s": float(np.min([w for w, _, _ in r])),
+                   **{key: float(np.mean([t[key] for _, t, _ in r])) for key in r[0][1]}, "result": r[-1][2]}
+            for name, r in runs.items()}
 
 
-def one(bag: Path, config: RunConfig, rows: int, repeats: int) -> dict:
+def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool) -> dict:
     identifier, velocity = identifier_of(bag, config)
     obs = identifier.problem.observations
     n = obs.n_frames - 1
+    paths = ({"tensor": identifier.tensor_device or "cpu", "kdtree": None} if compare
+             else {"tensor" if identifier.tensor_device else "kdtree": identifier.tensor_device})
 
-    def window() -> tuple:
-        return identifier.window_loss(0, n, None, grad=True)
+    def window() -> dict:
+        loss, du, _, per = identifier.window_loss(0, n, None, grad=True)
+        return {"loss": loss, "per_object": per.tolist(), "du": du.tolist()}
 
-    for _ in range(2):  # kernel compilation, then the CUDA graphs' capture
-        loss, du, dv, per = window()
-    result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
-              "frames": n, "free": [e.label for e in identifier.entries],
-              "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
-              "window": {**timed(window, lambda: identifier.timing, repeats),
-                         "loss": float(loss), "per_object": per.tolist(), "du": du.tolist()}}
-    print(json.dumps(result["window"]), flush=True)
     u = identifier.pack()
     lo, hi = identifier.search.box(u)
     candidates = lo + (hi - lo) * np.random.default_rng(0).random((rows, len(u)))
-    scores = {}
 
-    def search() -> None:
-        scores["total"], scores["per"] = identifier.search.batch_object_losses(candidates, velocity)
+    def search() -> dict:
+        total, per = identifier.search.batch_object_losses(candidates, velocity)
+        return {"loss": total.tolist(), "per_object": per.tolist()}
 
-    search()  # compilation, the batched simulator's buffers
-    result["search"] = {"rows": rows, **timed(search, lambda: identifier.search.timing, repeats),
-                        "loss": scores["total"].tolist(), "per_object": scores["per"].tolist()}
-    print(json.dumps(plain(result["search"], null_nonfinite=True))[:600], flush=True)
+    # untimed: kernel compilation, the CUDA graphs' capture (a window's second call), the batched
+    # simulator's buffers, the observations' tensors
+    timed(identifier, paths, window, lambda: {}, 2)
+    timed(identifier, paths, search, lambda: {}, 1)
+    result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
+              "frames": n, "free": [e.label for e in identifier.entries], "rows": rows,
+              "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
+              "window": timed(identifier, paths, window, lambda: identifier.timing, repeats),
+              "search": timed(identifier, paths, search, lambda: identifier.search.timing, repeats)}
+    for part in ("window", "search"):
+        print(part, json.dumps({name: {k: v for k, v in r.items() if k != "result"}
+                                for name, r in result[part].items()}), flush=True)
     return result
 
 
@@ -108,10 +119,12 @@ def main() -> int:
     parser.add_argument("--params-file", type=Path, default=Path("config/mosiv.yaml"))
     parser.add_argument("--rows", type=int, default=32, help="candidate rows of the batched search")
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--compare", action="store_true",
+                        help="time both loss paths, the tensors' and the KD-trees', interleaved")
     parser.add_argument("--out", type=Path, default=Path("out/loss_throughput.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
-    results = [one(bag, config, args.rows, args.repeats) for bag in args.bags]
+    results = [one(bag, config, args.rows, args.repeats, args.compare) for bag in args.bags]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(plain({
         "benchmark": "loss_throughput", "device": args.device, "host": platform.node(),

@@ -208,10 +208,12 @@ class Identifier:
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
+        self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
         self.tensor_device: str | None = self.sim.device if self.sim.device.startswith("cuda") else None
         """Where the losses are computed as tensors, every frame (and row) at once
         (``losses.tensor_terms``): the simulator's GPU. None: on the CPU frame by frame, nearest
-        neighbours by KD-tree (the tests set "cpu" to run the tensor path there)."""
+        neighbours by KD-tree, the silhouettes in torch on ``torch_device`` (the tests set "cpu"
+        to run the tensor path there)."""
         self.search = GlobalSearch(self)
         self.curriculum = Curriculum(self)
 
@@ -350,7 +352,7 @@ class Identifier:
             # the particles the Chamfer scores, not the boundary band outside the surface
             value, g = silhouette_losses(traj[1:, 0][:, inside], self.index[inside], obs.object_ids,
                                          obs.views, obs.masks[start + 1: start + length + 1],
-                                         s.splat_radius, s.loss.per_object)
+                                         s.splat_radius, s.loss.per_object, self.torch_device)
             total += s.loss.silhouette_weight * value
             dL[1:, 0, inside] += s.loss.silhouette_weight * g
         if s.loss.track_weight > 0 and obs.tracks is not None:

@@ -117,8 +117,15 @@ once; each holds some 40 to 60 bytes while it does (1.3 to 2 GB)."""
 
 
 def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Squared distances of broadcast points (..., 3), summed as the KD-tree sums them."""
-    return (a[..., 0] - b[..., 0]) ** 2 + (a[..., 1] - b[..., 1]) ** 2 + (a[..., 2] - b[..., 2]) ** 2
+    """Squared distances of broadcast points (..., 3), summed as the KD-tree sums them.
+
+    (dx dx + dy dy) + dz dz, one axis at a time ((...) temporaries, not (..., 3)).
+    """
+    total = None
+    for axis in range(3):
+        d = a[..., axis] - b[..., axis]
+        total = d * d if total is None else total + d * d
+    return total
 
 
 def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -145,7 +152,7 @@ def _target_blocks(targets: torch.Tensor, valid: torch.Tensor):
 
     Returns the points (J, B, S, 3), which are valid (J, B, S), their indices in ``targets``
     (J, B, S), each block's bounding box, lower and upper corner (J, B, 3) (+inf and -inf for a
-    block without a valid point), and the centroid of its valid points (J, B, 3) (+inf without).
+    block without a valid point), and the centroid of its valid points (J, B, 3) (1e100 without).
     """
     n_jobs, m = valid.shape
     least, most = NEAREST_BLOCK
@@ -161,7 +168,7 @@ def _target_blocks(targets: torch.Tensor, valid: torch.Tensor):
     hi = torch.where(valid[..., None], points, -math.inf).amax(dim=2)
     count = valid.sum(dim=2, keepdim=True)
     centroid = torch.where(count > 0, torch.where(valid[..., None], points, 0.0).sum(dim=2) / count.clamp(min=1),
-                           math.inf)
+                           1e100)
     return points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid
 
 
@@ -179,10 +186,11 @@ def _box_squared(q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.T
     Summed as ``_squared`` sums, of gaps rounded as a point's differences are: rounding is
     monotone, so no point of a box is nearer than its box.
     """
-    total = torch.zeros((), dtype=q.dtype, device=q.device)
-    for a in range(3):  # one axis at a time: (J, c, B) temporaries, not (J, c, B, 3)
-        qa = q[:, :, None, a]
-        total = total + torch.maximum(lo[:, None, :, a] - qa, qa - hi[:, None, :, a]).clamp(min=0) ** 2
+    total = None
+    for axis in range(3):  # one axis at a time: (J, c, B) temporaries, not (J, c, B, 3)
+        qa = q[:, :, None, axis]
+        gap = torch.maximum(lo[:, None, :, axis] - qa, qa - hi[:, None, :, axis]).clamp_(min=0)
+        total = gap * gap if total is None else total + gap * gap
     return total
 
 
@@ -206,6 +214,7 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
     n_jobs, n = query_valid.shape
     device = queries.device
     points, valid, order, lo, hi, centroid = _target_blocks(targets, target_valid)
+    far = (centroid * centroid).sum(dim=2)
     blocks, size = valid.shape[1:]
     best = torch.full((n_jobs, n), math.inf, dtype=torch.float64, device=device)
     index = torch.full((n_jobs, n), -1, dtype=torch.long, device=device)
@@ -216,7 +225,8 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
         q = queries[:, first:first + step]
         c = q.shape[1]
         lower = _box_squared(q, lo, hi)  # (J, c, B)
-        closest = _squared(q[:, :, None], centroid[:, None]).argmin(dim=2)
+        # the block of nearest centroid (by |c|^2 - 2 q.c: a choice, not a distance, needs no exactness)
+        closest = torch.baddbmm(far[:, None], q, centroid.transpose(1, 2), alpha=-2.0).argmin(dim=2)
         bound = _block_squared(q, points[jobs, closest], valid[jobs, closest]).amin(dim=2)
         keep = (lower <= bound[..., None]) & torch.isfinite(lower) & query_valid[:, first:first + c, None]
         j, i, b = keep.nonzero(as_tuple=True)

@@ -238,7 +238,8 @@ class GlobalSearch:
             for b in range(n):  # as Identifier.window_loss: the particles inside the surface
                 silhouette = s.loss.silhouette_weight / frames * silhouette_object_losses(
                     traj[1:frames + 1, b][:, inside[b]], fit.index[inside[b]], obs.object_ids,
-                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object)
+                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object,
+                    fit.torch_device)
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
         return total, per
