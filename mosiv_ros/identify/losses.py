@@ -20,6 +20,13 @@ per object keeps one object's points from "explaining" another's at contact. A s
   pixels of other objects are unknown for k (they may occlude it) and left out. Gradients come
   from torch autograd; all frames of a window are rendered per view in one batch.
 
+Two forms of the same terms: per frame in numpy on the CPU (``geometry_loss``, ``track_loss``,
+``silhouette_losses``: KD-trees, the silhouettes in torch a batch of frames at a time), and as
+torch tensors on one device for many rows (parameter sets) and frames at once
+(``tensor_terms``: exact nearest neighbours by ``nearest``, gradients by autograd), which the
+identifier uses on a GPU. The two agree to float64 rounding, but for which of several equally
+near neighbours takes a tie.
+
 What it is for: the identifier's objective. What it is not for: evaluation metrics reported to
 users (``mosiv_ros.evaluate``), which use unsquared distances.
 """
@@ -109,8 +116,8 @@ def track_loss(x: np.ndarray, tracks: TrackAttachment, frame: int, scale: float,
 NEAREST_BLOCK = (16, 128)
 """Least and most targets in a block of ``nearest``'s search. A query costs one box bound per
 block and an exhaustive search of the few blocks near it; about sqrt(M) / 2 targets a block (M
-the targets) kept that lowest on the sample bags (about 1,200 distances and bounds a query, not
-15,000, for 15,000 observed points)."""
+the targets) kept that lowest on elastic_on_plastic (a clay particle: 240 bounds and 650
+distances, not 15,000 distances, to the clay's 15,000 observed points)."""
 NEAREST_BUDGET = 1 << 25
 """Query-block pairs (bounds), or query-point pairs (squared distances), ``nearest`` takes at
 once; each holds some 40 to 60 bytes while it does (1.3 to 2 GB)."""
@@ -206,9 +213,9 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
     dz^2, so that the two find equally near targets.
 
     The targets are sorted into blocks along a Z-order curve (``_target_blocks``). A query's
-    distance to the points of the block whose bounding box is nearest to it bounds its nearest
-    distance from above; only the blocks whose box lies within that bound are searched, each
-    exhaustively. The box distances are rounded down as the point distances are (both are the
+    distance to the points of the block whose centroid is nearest to it bounds its nearest
+    distance from above; only the blocks whose bounding box lies within that bound are searched,
+    each exhaustively. The box distances are rounded down as the point distances are (both are the
     same sums of monotone roundings), so no block that holds the nearest target is skipped.
     """
     n_jobs, n = query_valid.shape

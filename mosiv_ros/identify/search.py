@@ -9,11 +9,11 @@ rollouts of the first ``search.frames`` frames (0 = all):
   the loss flat, so no gradient finds the way down: the samples must land below it) and
   otherwise the initial value +- ``search_decades`` decades (scale parameters) or 2 logit units;
 - samples are scored by the objective Adam minimises (Chamfer, silhouette and track terms,
-  ``batch_object_losses``). The best sample is kept; with per-object losses, so is the
-  composite that takes each object's parameters from the sample that fits that object best
-  (each object's loss depends mostly on its own parameters, so 32 samples search each object's
-  few dimensions rather than all objects' together), whichever of the two fits better
-  (``best``);
+  ``batch_object_losses``; on a GPU every row and frame of a batch at once, as tensors). The
+  best sample is kept; with per-object losses, so is the composite that takes each object's
+  parameters from the sample that fits that object best (each object's loss depends mostly on
+  its own parameters, so 32 samples search each object's few dimensions rather than all
+  objects' together), whichever of the two fits better (``best``);
 - the ``search.starts`` best points of this first round are the starts: each then goes through
   ``search.rounds`` more such rounds, each in a box 3x narrower than the last around its best
   so far (samples that move every coordinate at once follow the valleys of coupled parameters,
