@@ -85,11 +85,13 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool) ->
     paths = ({"tensor": identifier.tensor_device or "cpu", "kdtree": None} if compare
              else {"tensor" if identifier.tensor_device else "kdtree": identifier.tensor_device})
 
+    u = identifier.pack()
+
     def window() -> dict:
+        identifier.apply(u, velocity)  # the search's calls set the simulator to their first row
         loss, du, _, per = identifier.window_loss(0, n, None, grad=True)
         return {"loss": loss, "per_object": per.tolist(), "du": du.tolist()}
 
-    u = identifier.pack()
     lo, hi = identifier.search.box(u)
     candidates = lo + (hi - lo) * np.random.default_rng(0).random((rows, len(u)))
 
