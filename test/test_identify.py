@@ -8,15 +8,26 @@ from dataclasses import fields, replace
 
 import numpy as np
 import pytest
+import torch
+from scipy.spatial import cKDTree
 from sim_scenes import scene
 
-from mosiv_ros.config import FitConfig, IdentifyConfig, from_mapping, updated
+from mosiv_ros.config import FitConfig, IdentifyConfig, LossConfig, from_mapping, updated
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
-from mosiv_ros.identify.losses import geometry_loss, silhouette_loss
-from mosiv_ros.identify.observations import Observations, View
+from mosiv_ros.identify.losses import (
+    chamfer,
+    chamfer_batch,
+    geometry_loss,
+    nearest,
+    silhouette_loss,
+    silhouette_object_losses,
+    tensor_terms,
+    track_loss,
+)
+from mosiv_ros.identify.observations import Observations, TrackAttachment, View, padded
 from mosiv_ros.identify.run import fit_problem, phase_progress
 from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.sim import Ground, ObjectModel, Particles
@@ -91,6 +102,135 @@ def test_silhouette_treats_pixels_of_another_object_as_unknown():
     assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
 
 
+def _brute_squared(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) squared distances, summed in the KD-tree's order (dx^2 + dy^2) + dz^2."""
+    d = a[:, None] - b[None]
+    return d[..., 0] ** 2 + d[..., 1] ** 2 + d[..., 2] ** 2
+
+
+def test_the_tensor_nearest_neighbour_is_exact_and_takes_the_lowest_index_of_a_tie():
+    rng = np.random.default_rng(1)
+    lattice = np.stack(np.meshgrid(*[np.arange(12.0)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    jobs = [(rng.normal(size=(300, 3)), rng.normal(size=(2000, 3))),  # many blocks to skip
+            # half-integer points between lattice points: exact ties of 2, 4 or 8 targets
+            (rng.integers(0, 23, (400, 3)) / 2.0, lattice),
+            # on targets, some duplicated (the duplicates come later)
+            (lattice[rng.choice(len(lattice), 200)], np.concatenate([lattice, lattice[:300]])),
+            (rng.normal(size=(50, 3)), np.zeros((0, 3)))]  # no target at all
+    q, q_valid = padded([a for a, _ in jobs], "cpu")
+    t, t_valid = padded([b for _, b in jobs], "cpu")
+    q_valid[0, :10] = False  # queries that are padding
+    d2, index = (a.numpy() for a in nearest(q, q_valid, t, t_valid))
+    ties = 0
+    for j, (a, b) in enumerate(jobs):
+        asked = q_valid[j, :len(a)].numpy()
+        assert np.all(np.isinf(d2[j][~q_valid[j].numpy()])) and np.all(index[j][~q_valid[j].numpy()] == -1)
+        if not len(b):
+            assert np.all(np.isinf(d2[j])) and np.all(index[j] == -1)
+            continue
+        full = _brute_squared(a[asked], b)
+        np.testing.assert_array_equal(index[j, :len(a)][asked], full.argmin(axis=1))  # the first of a tie
+        np.testing.assert_array_equal(d2[j, :len(a)][asked], full.min(axis=1))
+        distance, _ = cKDTree(b).query(a[asked])
+        np.testing.assert_allclose(d2[j, :len(a)][asked], distance**2, rtol=1e-14, atol=1e-300)
+        ties += int(np.sum(np.sum(full == full.min(axis=1, keepdims=True), axis=1) > 1))
+    assert ties > 300  # the lattice jobs did tie
+
+
+def test_the_tensor_chamfer_equals_the_kd_tree_chamfer_and_its_gradient():
+    rng = np.random.default_rng(2)
+    y = rng.normal(size=(80, 3))
+    on = np.concatenate([rng.normal(size=(30, 3)), y[:10], y[:5]])  # on targets, twice on some
+    pairs = [(rng.normal(size=(50, 3)), rng.normal(size=(700, 3)) + 0.3),
+             (on, np.concatenate([y, y[:20]])),  # duplicated targets
+             (rng.normal(size=(40, 3)), np.zeros((0, 3))), (np.zeros((0, 3)), y)]  # an empty set
+    x, x_valid = padded([a for a, _ in pairs], "cpu")
+    y_t, y_valid = padded([b for _, b in pairs], "cpu")
+    x.requires_grad_(True)
+    values = chamfer_batch(x, x_valid, y_t, y_valid)
+    values.sum().backward()
+    for j, (a, b) in enumerate(pairs):
+        expected, g = chamfer(a, b)
+        assert float(values[j].detach()) == pytest.approx(expected, rel=1e-13, abs=0.0)
+        got = x.grad[j, :len(a)].numpy()
+        # particles at one place tie as a target's nearest: a KD-tree gives the pull to any one of
+        # them, the tensors to the first; the sum over the place is the same
+        _, place = np.unique(a, axis=0, return_inverse=True)
+        summed = [np.zeros((place.max(initial=-1) + 1, 3)) for _ in range(2)]
+        np.add.at(summed[0], place, got)
+        np.add.at(summed[1], place, g)
+        np.testing.assert_allclose(summed[0], summed[1], rtol=1e-12, atol=1e-15)
+        assert np.all(x.grad[j, len(a):].numpy() == 0.0)
+    assert float(values[2].detach()) == 0.0 and float(values[3].detach()) == 0.0
+
+
+def _two_object_observations(frames: int = 3):
+    """Two particle blocks over ``frames`` + 1 frames, seen as noisy points (object 1 not at frame
+    2), by a top camera (masks), and tracked; with the particles (R=3 rows, (F, N, 3)) to score."""
+    rng = np.random.default_rng(4)
+    a = box((0.05, 0.05, 0.03), (0.03, 0.03, 0.02), 0.01)[0]
+    b = box((0.14, 0.05, 0.03), (0.03, 0.03, 0.02), 0.01)[0]
+    x0 = np.concatenate([a, b])
+    index = np.repeat([0, 1], [len(a), len(b)])
+    drift = np.arange(frames + 1)[:, None, None] * np.array([0.004, 0.0, -0.002])
+    moving = x0[None] + drift
+    points = [[moving[f, index == k] + rng.normal(0, 0.002, (int(np.sum(index == k)), 3)) for k in (0, 1)]
+              for f in range(frames + 1)]
+    points[2][1] = np.zeros((0, 3))
+    view = _camera_looking_down(0.6)
+    view.T_world_optical[:2, 3] = [0.1, 0.05]
+    masks = []
+    for f in range(frames + 1):
+        mask = np.zeros((view.height, view.width), dtype=np.uint16)
+        for k in (0, 1):
+            uv, _ = view.project(points[f][k])
+            cols, rows = np.rint(uv).astype(int).T if len(uv) else (np.zeros(0, int), np.zeros(0, int))
+            mask[np.clip(rows, 0, view.height - 1), np.clip(cols, 0, view.width - 1)] = k + 1
+        masks.append({"top": mask})
+    followed = rng.choice(len(x0), 8, replace=False)
+    positions = moving[:, followed] + 0.001
+    positions[1, 3] = np.nan
+    tracks, _ = TrackAttachment.attach(positions, rng.uniform(0.5, 1.0, positions.shape[:2]), index[followed] + 1,
+                                       [1, 2], x0, index, 0.01)
+    obs = Observations(1 / 30, points, [1, 2], [view], masks, tracks=tracks)
+    x = moving[None, 1:] + rng.normal(0, 0.003, (3, frames, len(x0), 3))
+    x[2, ..., 2] += 0.3  # nearer the camera: larger splats, a longer reach than the other rows'
+    visible = rng.random((3, len(x0))) > 0.2
+    return obs, x, visible, index
+
+
+@pytest.mark.parametrize("per_object", [True, False])
+def test_tensor_terms_of_rows_together_equal_each_row_alone_and_the_frame_by_frame_losses(per_object):
+    obs, x, visible, index = _two_object_observations()
+    loss = LossConfig(per_object=per_object)
+    frames = slice(1, 4)
+
+    def terms(rows):
+        return tensor_terms(torch.as_tensor(x[rows]), torch.as_tensor(visible[rows]), index, obs.tensors("cpu"),
+                            obs.object_ids, frames, loss, 0.005)
+
+    together = terms(slice(None))
+    for r in range(3):
+        alone = terms(slice(r, r + 1))
+        for name in ("chamfer", "chamfer_total", "track", "silhouette"):
+            np.testing.assert_allclose(getattr(together, name)[r].numpy(), getattr(alone, name)[0].numpy(),
+                                       rtol=1e-13, atol=0.0)
+        mine = visible[r]
+        for f in range(3):
+            total, _, per = geometry_loss(x[r, f, mine], index[mine], obs.points[f + 1], per_object,
+                                          obs.trees(f + 1))
+            assert float(together.chamfer_total[r, f]) == pytest.approx(total, rel=1e-13)
+            np.testing.assert_allclose(together.chamfer[r, f].numpy(), per, rtol=1e-13)  # NaN: not scored
+            tracked = track_loss(x[r, f], obs.tracks, f + 1, loss.track_scale, 2)[2]
+            np.testing.assert_allclose(together.track[r, f].numpy(), tracked, rtol=1e-12, atol=1e-18)
+        silhouette = silhouette_object_losses(x[r][:, mine], index[mine], obs.object_ids, obs.views,
+                                              obs.masks[frames], 0.005, per_object)
+        np.testing.assert_allclose(together.silhouette[r].numpy(), silhouette, rtol=1e-12)
+    assert np.isnan(together.chamfer[:, 1, 1].numpy()).all()  # object 1 unseen at frame 2
+    assert np.isnan(together.chamfer[:, 0].numpy()).any() != per_object
+    assert float(together.track.sum()) > 0 and float(together.silhouette.sum()) > 0
+
+
 @pytest.mark.parametrize("spec", [*MATERIAL_PARAMS, *GROUND_PARAMS], ids=lambda s: s.name)
 def test_coordinates_round_trip_and_keep_values_inside_their_range(spec):
     c = Coordinate.for_spec(spec)
@@ -124,10 +264,8 @@ def _cube_problem(true_params, guess, free, frames=15, observed_points=None, sta
                                             "search.starts": 1, **fit})
 
 
-def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
-    # a top camera sees the true cube: the search's batched losses and a fit window's loss are
-    # the same function of the parameters (the search used to score the Chamfer term only)
-    problem, _ = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=6)
+def _seen_from_above(problem: FitProblem) -> FitProblem:
+    """``problem`` with a top camera's masks of its observed points (one object)."""
     view = _camera_looking_down(1.2)
     view.T_world_optical[:2, 3] = [0.2, 0.2]
     obs = problem.observations
@@ -139,6 +277,14 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
         mask[np.clip(rows, 0, view.height - 1), np.clip(cols, 0, view.width - 1)] = 1
         masks.append({"top": mask})
     problem.observations = Observations(obs.frame_dt, obs.points, obs.object_ids, [view], masks)
+    return problem
+
+
+def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
+    # a top camera sees the true cube: the search's batched losses and a fit window's loss are
+    # the same function of the parameters (the search used to score the Chamfer term only)
+    problem = _seen_from_above(_cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=6)[0])
+    obs = problem.observations
     losses = {}
     for weight in (0.0, 0.1):
         identifier = Identifier(problem, updated(FitSettings(), {"loss.silhouette_weight": weight}))
@@ -151,6 +297,34 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
         assert searched == pytest.approx(whole, rel=1e-6)
         losses[weight] = searched
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
+
+
+def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
+    # the GPU's path (every frame and row at once, as tensors) run on the CPU against the CPU's
+    # (KD-trees, frame by frame, row by row): the same window loss and gradient, the same scores.
+    # Thrown sideways: a mirror-symmetric motion ties nearest neighbours, which the two break apart
+    problem = _seen_from_above(_cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"],
+                                             frames=5, observed_points=60, velocity=(0.4, 0.13, -0.5))[0])
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    paths = {device: Identifier(problem, FitSettings(cpu_workers=1)) for device in (None, "cpu")}
+    paths["cpu"].tensor_device = "cpu"
+    e, nu = (entry.coordinate for entry in paths[None].entries)
+    candidates = np.array([[e.to_u(E), nu.to_u(v)] for E, v in ((6e4, 0.3), (2e4, 0.4), (1e4, 0.2))])
+    scored = {}
+    for device, identifier in paths.items():
+        identifier.apply(candidates[0], velocity)
+        window = identifier.window_loss(0, 5, None, grad=True)
+        scored[device] = (window, *(identifier.search.batch_object_losses(candidates, velocity, together=together)
+                                    for together in (False, True)))
+    (window, *searched), (tensor_window, *tensor_searched) = scored[None], scored["cpu"]
+    assert tensor_window[0] == pytest.approx(window[0], rel=1e-12)
+    for got, expected in zip(tensor_window[1:], window[1:], strict=True):  # dL/du, dL/dvelocity, per object
+        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-12 * np.abs(expected).max())
+    for got, expected in zip(tensor_searched, searched, strict=True):
+        np.testing.assert_allclose(got[0], expected[0], rtol=1e-12)
+        np.testing.assert_allclose(got[1], expected[1], rtol=1e-12)
+    assert np.abs(window[1]).min() > 0 and window[0] > 0
 
 
 def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():

@@ -22,7 +22,8 @@ What the identifier itself does:
 - initial velocities start from the observed centroid motion of the first frames (an object
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
 - the objective (``window_loss``): Chamfer, silhouette and surface track terms over a window of
-  frames, and their gradients with respect to the coordinates and the initial velocities;
+  frames, and their gradients with respect to the coordinates and the initial velocities; on a
+  GPU all frames at once as tensors there (``tensor_device``), on the CPU frame by frame;
 - the result is the lowest whole-window loss among the search's point, the whole-sequence
   stage's iterates and Adam's last step (a windowed stage's objective is not the whole window's,
   and Adam's last step need not be its best); a last step that diverges loses to the other
@@ -42,12 +43,13 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, replace
 
 import numpy as np
+import torch
 
 from mosiv_ros.config import FitConfig
 from mosiv_ros.identify.checkpoint import Checkpoint, signature
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, Curriculum, FitState
-from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, track_loss
+from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, tensor_terms, torch_threads, track_loss
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.identify.search import GlobalSearch
 from mosiv_ros.lifting.lift import boundary_volume
@@ -208,6 +210,11 @@ class Identifier:
         self.observed_centroids = obs.centroids()
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
+        self.tensor_device: str | None = self.sim.device if self.sim.device.startswith("cuda") else None
+        """Where the losses are computed as tensors, every frame (and row) at once
+        (``losses.tensor_terms``): the simulator's GPU. None: on the CPU frame by frame, nearest
+        neighbours by KD-tree, the silhouettes in torch on ``torch_device`` (the tests set "cpu"
+        to run the tensor path there)."""
         self.search = GlobalSearch(self)
         self.curriculum = Curriculum(self)
 
@@ -292,11 +299,46 @@ class Identifier:
     def window_loss(self, start: int, length: int, initial: SimState | None,
                      grad: bool) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Loss over frames start+1..start+length, dL/du, dL/dvelocity (K, 6), per-object losses."""
-        obs, s = self.problem.observations, self.settings
+        obs = self.problem.observations
         tick = time.perf_counter()
         traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
         self.timing = {"forward_s": time.perf_counter() - tick}
         tick = time.perf_counter()
+        if self.tensor_device is not None:
+            total, dL, per = self._tensor_loss(traj, start, grad)
+        else:
+            total, dL, per = self._frame_losses(traj, start)
+        self.timing["loss_s"] = time.perf_counter() - tick
+        if not grad:
+            return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
+        tick = time.perf_counter()
+        grads = self.sim.backward(dL)
+        self.timing["backward_s"] = time.perf_counter() - tick
+        u = self.pack()
+        boundary = self.problem.boundary
+        if boundary is not None:
+            dL_do = grads.volume[0] * boundary.dvolume_doffset(self.offsets[self.index])
+            offset_grads = np.bincount(self.index, dL_do, minlength=obs.n_objects)
+        du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET else grads.params[e.name][e.index])
+                       * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
+        dv = np.zeros((obs.n_objects, 6))
+        if initial is None:  # velocities are parameters only of windows from frame 0
+            g0 = grads.v0[0]
+            r = self.problem.particles.x - self.centre0[self.index]
+            for k in range(obs.n_objects):
+                mine = self.index == k
+                dv[k, :3] = g0[mine].sum(axis=0)
+                dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
+        return total, du, dv, per
+
+    def _frame_losses(self, traj: np.ndarray, start: int) -> tuple[float, np.ndarray, np.ndarray]:
+        """The loss of rollout ``traj`` (frames ``start``.. on), dL/dx like ``traj``, per-object losses.
+
+        On the CPU, frame by frame: Chamfer by KD-tree, the silhouettes in batches of frames, the
+        tracks.
+        """
+        obs, s = self.problem.observations, self.settings
+        length = len(traj) - 1
         dL = np.zeros(traj.shape, dtype=np.float64)
         total, per = 0.0, np.zeros(obs.n_objects)
         inside = self.inside
@@ -321,30 +363,25 @@ class Identifier:
                 total += s.loss.track_weight * value
                 dL[f, 0] += s.loss.track_weight * g
                 per += s.loss.track_weight * per_f
-        total, dL, per = total / length, dL / length, per / length
-        self.timing["loss_s"] = time.perf_counter() - tick
-        if not grad:
-            return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
-        tick = time.perf_counter()
-        grads = self.sim.backward(dL)
-        self.timing["backward_s"] = time.perf_counter() - tick
-        u = self.pack()
-        boundary = self.problem.boundary
-        if boundary is not None:
-            dL_do = grads.volume[0] * boundary.dvolume_doffset(self.offsets[self.index])
-            offset_grads = np.bincount(self.index, dL_do, minlength=obs.n_objects)
-        du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET else grads.params[e.name][e.index])
-                       * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
-        dv = np.zeros((obs.n_objects, 6))
-        if initial is None:  # velocities are parameters only of windows from frame 0
-            g0 = grads.v0[0]
-            r = self.problem.particles.x - self.centre0[self.index]
-            for k in range(obs.n_objects):
-                mine = self.index == k
-                dv[k, :3] = g0[mine].sum(axis=0)
-                dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
-        return total, du, dv, per
+        return total / length, dL / length, per / length
 
+    def _tensor_loss(self, traj: np.ndarray, start: int, grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
+        """``_frame_losses`` as tensors on ``tensor_device``, dL/dx by autograd (zeros without ``grad``)."""
+        obs, loss, device = self.problem.observations, self.settings.loss, self.tensor_device
+        length = len(traj) - 1
+        dL = np.zeros(traj.shape, dtype=np.float64)
+        with torch_threads(device), torch.set_grad_enabled(grad):
+            x = torch.tensor(traj[None, 1:, 0], dtype=torch.float64, device=device, requires_grad=grad)
+            terms = tensor_terms(x, torch.as_tensor(self.inside[None], device=device), self.index,
+                                 obs.tensors(device), obs.object_ids, slice(start + 1, start + length + 1),
+                                 loss, self.settings.splat_radius)
+            total = (loss.chamfer_weight * terms.chamfer_total.sum() + loss.silhouette_weight
+                     * terms.silhouette.sum() + loss.track_weight * terms.track.sum()) / length
+            per = (terms.chamfer.nan_to_num().sum(dim=1) + loss.track_weight * terms.track.sum(dim=1)) / length
+            if grad:
+                total.backward()
+                dL[1:, 0] = x.grad[0].cpu().numpy()
+        return float(total.detach()), dL, per[0].detach().cpu().numpy()
 
     # --- the fit -----------------------------------------------------------------------------
 

@@ -20,19 +20,29 @@ per object keeps one object's points from "explaining" another's at contact. A s
   pixels of other objects are unknown for k (they may occlude it) and left out. Gradients come
   from torch autograd; all frames of a window are rendered per view in one batch.
 
+Two forms of the same terms: per frame in numpy on the CPU (``geometry_loss``, ``track_loss``,
+``silhouette_losses``: KD-trees, the silhouettes in torch a batch of frames at a time), and as
+torch tensors on one device for many rows (parameter sets) and frames at once
+(``tensor_terms``: exact nearest neighbours by ``nearest``, gradients by autograd), which the
+identifier uses on a GPU. The two agree to float64 rounding, but for which of several equally
+near neighbours takes a tie.
+
 What it is for: the identifier's objective. What it is not for: evaluation metrics reported to
 users (``mosiv_ros.evaluate``), which use unsquared distances.
 """
 
 from __future__ import annotations
 
+import math
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from mosiv_ros.identify.observations import TrackAttachment, View
+from mosiv_ros.config import LossConfig
+from mosiv_ros.identify.observations import MaskTensors, ObservedTensors, TrackAttachment, TrackTensors, View
 
 SPLAT_OPACITY = 0.9
 
@@ -103,15 +113,271 @@ def track_loss(x: np.ndarray, tracks: TrackAttachment, frame: int, scale: float,
     return float(per.sum()), grad, per
 
 
-def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, height: int,
-                width: int) -> torch.Tensor:
-    """(F, H, W) soft masks A = 1 - prod_i (1 - opacity w_i(p)), Gaussian w_i within 3 sigma.
+NEAREST_BLOCK = (16, 128)
+"""Least and most targets in a block of ``nearest``'s search. A query costs one box bound per
+block and an exhaustive search of the few blocks near it; about sqrt(M) / 2 targets a block (M
+the targets) kept that lowest on elastic_on_plastic (a clay particle: 240 bounds and 650
+distances, not 15,000 distances, to the clay's 15,000 observed points)."""
+NEAREST_BUDGET = 1 << 25
+"""Query-block pairs (bounds), or query-point pairs (squared distances), ``nearest`` takes at
+once; each holds some 40 to 60 bytes while it does (1.3 to 2 GB)."""
 
-    ``uv`` (F, M, 2) pixel positions, ``sigma`` (F, M) splat radii in pixels, ``valid`` (F, M)
-    the particles that count (in front of the camera).
+
+def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared distances of broadcast points (..., 3), summed as the KD-tree sums them.
+
+    (dx dx + dy dy) + dz dz, one axis at a time ((...) temporaries, not (..., 3)).
     """
-    n_frames = uv.shape[0]
-    reach = int(np.clip(np.ceil(3 * float(sigma.detach()[valid].max())), 1, 8))
+    total = None
+    for axis in range(3):
+        d = a[..., axis] - b[..., axis]
+        total = d * d if total is None else total + d * d
+    return total
+
+
+def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(J, M) Z-order keys of points (J, M, 3), invalid points last.
+
+    On a 1024^3 lattice over the bounding box of each job's valid points.
+    """
+    inf = torch.tensor(math.inf, dtype=points.dtype, device=points.device)
+    lo = torch.where(valid[..., None], points, inf).amin(dim=1, keepdim=True)
+    hi = torch.where(valid[..., None], points, -inf).amax(dim=1, keepdim=True)
+    scaled = (points - lo) / (hi - lo).clamp(min=1e-12) * 1023
+    cell = torch.where(valid[..., None], scaled, 0.0).clamp(0, 1023).long()
+    key = torch.zeros_like(cell[..., 0])
+    for axis in range(3):  # spread the 10 bits of each axis to every third bit
+        v = cell[..., axis]
+        for shift, mask in ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
+            v = (v | (v << shift)) & mask
+        key |= v << axis
+    return torch.where(valid, key, 1 << 31)
+
+
+def _target_blocks(targets: torch.Tensor, valid: torch.Tensor):
+    """Each job's targets sorted along a Z-order curve into blocks (``NEAREST_BLOCK``).
+
+    Returns the points (J, B, S, 3), which are valid (J, B, S), their indices in ``targets``
+    (J, B, S), each block's bounding box, lower and upper corner (J, B, 3) (+inf and -inf for a
+    block without a valid point), and the centroid of its valid points (J, B, 3) (1e100 without).
+    """
+    n_jobs, m = valid.shape
+    least, most = NEAREST_BLOCK
+    size = int(np.clip(2 ** round(math.log2(max(math.sqrt(m) / 2, 1))), least, most))
+    blocks = max(1, -(-m // size))
+    extra = blocks * size - m
+    targets = torch.cat([targets, targets.new_zeros((n_jobs, extra, 3))], dim=1)
+    valid = torch.cat([valid, valid.new_zeros((n_jobs, extra))], dim=1)
+    order = _morton(targets, valid).argsort(dim=1, stable=True)
+    points = targets.gather(1, order[..., None].expand(-1, -1, 3)).view(n_jobs, blocks, size, 3)
+    valid = valid.gather(1, order).view(n_jobs, blocks, size)
+    lo = torch.where(valid[..., None], points, math.inf).amin(dim=2)
+    hi = torch.where(valid[..., None], points, -math.inf).amax(dim=2)
+    count = valid.sum(dim=2, keepdim=True)
+    centroid = torch.where(count > 0, torch.where(valid[..., None], points, 0.0).sum(dim=2) / count.clamp(min=1),
+                           1e100)
+    return points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid
+
+
+def _block_squared(q: torch.Tensor, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(..., S) squared distances of queries (..., 3) to blocks of points (..., S, 3).
+
+    inf where a point is not ``valid``.
+    """
+    return torch.where(valid, _squared(q[..., None, :], points), math.inf)
+
+
+def _box_squared(q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """(J, c, B) squared distances of queries (J, c, 3) to boxes (J, B, 3), at most any point's in a box.
+
+    Summed as ``_squared`` sums, of gaps rounded as a point's differences are: rounding is
+    monotone, so no point of a box is nearer than its box.
+    """
+    total = None
+    for axis in range(3):  # one axis at a time: (J, c, B) temporaries, not (J, c, B, 3)
+        qa = q[:, :, None, axis]
+        gap = torch.maximum(lo[:, None, :, axis] - qa, qa - hi[:, None, :, axis]).clamp_(min=0)
+        total = gap * gap if total is None else total + gap * gap
+    return total
+
+
+def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Tensor,
+            target_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact nearest valid target of each valid query, for J jobs at once, on their device.
+
+    ``queries`` (J, N, 3) and ``targets`` (J, M, 3) float64, which are points ``query_valid``
+    (J, N) and ``target_valid`` (J, M) (the rest is padding). Returns the squared distance
+    (J, N) and the index into ``targets`` (J, N) of each query's nearest target: the lowest index
+    among equally near ones (a KD-tree takes any of them); inf and -1 for an invalid query or a
+    job without a valid target. Distances are summed as the KD-tree sums them, (dx^2 + dy^2) +
+    dz^2, so that the two find equally near targets.
+
+    The targets are sorted into blocks along a Z-order curve (``_target_blocks``). A query's
+    distance to the points of the block whose centroid is nearest to it bounds its nearest
+    distance from above; only the blocks whose bounding box lies within that bound are searched,
+    each exhaustively. The box distances are rounded down as the point distances are (both are the
+    same sums of monotone roundings), so no block that holds the nearest target is skipped.
+    """
+    n_jobs, n = query_valid.shape
+    device = queries.device
+    points, valid, order, lo, hi, centroid = _target_blocks(targets, target_valid)
+    far = (centroid * centroid).sum(dim=2)
+    blocks, size = valid.shape[1:]
+    best = torch.full((n_jobs, n), math.inf, dtype=torch.float64, device=device)
+    index = torch.full((n_jobs, n), -1, dtype=torch.long, device=device)
+    jobs = torch.arange(n_jobs, device=device)[:, None]
+    beyond = torch.iinfo(torch.long).max
+    step = max(1, NEAREST_BUDGET // (n_jobs * (blocks + size)))
+    for first in range(0, n, step):
+        q = queries[:, first:first + step]
+        c = q.shape[1]
+        lower = _box_squared(q, lo, hi)  # (J, c, B)
+        # the block of nearest centroid (by |c|^2 - 2 q.c: a choice, not a distance, needs no exactness)
+        closest = torch.baddbmm(far[:, None], q, centroid.transpose(1, 2), alpha=-2.0).argmin(dim=2)
+        bound = _block_squared(q, points[jobs, closest], valid[jobs, closest]).amin(dim=2)
+        keep = (lower <= bound[..., None]) & torch.isfinite(lower) & query_valid[:, first:first + c, None]
+        j, i, b = keep.nonzero(as_tuple=True)
+        low = torch.empty(len(j), dtype=torch.float64, device=device)
+        lowest = torch.empty(len(j), dtype=torch.long, device=device)
+        pairs = max(1, NEAREST_BUDGET // size)
+        for p in range(0, len(j), pairs):
+            jp, ip, bp = j[p:p + pairs], i[p:p + pairs], b[p:p + pairs]
+            d2 = _block_squared(q[jp, ip], points[jp, bp], valid[jp, bp])
+            low[p:p + pairs] = d2.amin(dim=1)
+            lowest[p:p + pairs] = torch.where(d2 == low[p:p + pairs, None], order[jp, bp], beyond).amin(dim=1)
+        slot = j * c + i
+        near = torch.full((n_jobs * c,), math.inf, dtype=torch.float64, device=device)
+        near = near.scatter_reduce(0, slot, low, "amin")
+        tied = low == near[slot]
+        found = torch.full((n_jobs * c,), beyond, dtype=torch.long, device=device)
+        found = found.scatter_reduce(0, slot[tied], lowest[tied], "amin")
+        best[:, first:first + c] = near.view(n_jobs, c)
+        index[:, first:first + c] = torch.where(found < beyond, found, -1).view(n_jobs, c)
+    return best, index
+
+
+def _take(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """(J, N, 3) the points (J, M, 3) at ``index`` (J, N) (the first one where -1)."""
+    return points.gather(1, index.clamp(min=0)[..., None].expand(-1, -1, 3))
+
+
+def chamfer_batch(x: torch.Tensor, x_valid: torch.Tensor, y: torch.Tensor,
+                  y_valid: torch.Tensor) -> torch.Tensor:
+    """``chamfer`` of J pairs of point sets as tensors, on their device: (J,) values.
+
+    ``x`` (J, N, 3) and ``y`` (J, M, 3) float64 (N, M >= 1), padded, with which entries are
+    points ``x_valid`` (J, N) and ``y_valid`` (J, M). The values are differentiable in ``x``
+    (autograd), each nearest neighbour held fixed as ``chamfer``'s gradient holds it; 0 where
+    either set is empty. Nearest neighbours by ``nearest``.
+    """
+    with torch.no_grad():
+        _, to_y = nearest(x.detach(), x_valid, y, y_valid)
+        _, to_x = nearest(y, y_valid, x.detach(), x_valid)
+    nx, ny = x_valid.sum(dim=1), y_valid.sum(dim=1)
+    both = ((nx > 0) & (ny > 0))[:, None]
+    there = torch.where(x_valid & both, _squared(x, _take(y, to_y)), 0.0).sum(dim=1)
+    back = torch.where(y_valid & both, _squared(y, _take(x, to_x)), 0.0).sum(dim=1)
+    return there / nx.clamp(min=1) + back / ny.clamp(min=1)
+
+
+def _chamfer_rows(x: torch.Tensor, visible: torch.Tensor, y: torch.Tensor,
+                  y_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Chamfer of each row's particles against each frame's points: values and which scored.
+
+    ``x`` (R, F, N, 3) the particles (those ``visible`` (R, N) of each row), ``y`` (F, M, 3) the
+    points (``y_valid`` (F, M)). Returns the values (R, F) and whether both sets had points (R, F).
+    """
+    rows, frames, n = x.shape[:3]
+    x_valid = visible[:, None].expand(rows, frames, n).reshape(rows * frames, n)
+    y_valid = y_valid.expand(rows, *y_valid.shape).reshape(rows * frames, -1)
+    values = chamfer_batch(x.reshape(rows * frames, n, 3), x_valid,
+                           y.expand(rows, *y.shape).reshape(rows * frames, -1, 3), y_valid)
+    return values.view(rows, frames), (x_valid.any(dim=1) & y_valid.any(dim=1)).view(rows, frames)
+
+
+def track_terms(x: torch.Tensor, tracks: TrackTensors, frames: slice, scale: float,
+                n_objects: int) -> torch.Tensor:
+    """``track_loss`` of R rows over F frames as tensors: each object's (R, F, K).
+
+    ``x`` (R, F, N, 3) the particles at ``frames`` of ``tracks``; differentiable in ``x``.
+    """
+    alive = tracks.alive[frames]
+    points = (tracks.weights[..., None] * x[:, :, tracks.particles]).sum(dim=3) + tracks.offset
+    r = points - tracks.positions[frames]
+    root = torch.sqrt(1.0 + (r**2).sum(dim=-1) / scale**2)
+    objects = torch.nn.functional.one_hot(tracks.object_index, n_objects).to(x.dtype)  # (T, K)
+    count = (alive.to(x.dtype) @ objects) @ objects.T  # (F, T): alive tracks of each one's object
+    share = torch.where(alive, tracks.confidence[frames] / count.clamp(min=1), 0.0)
+    return (share * scale**2 * (root - 1.0)) @ objects
+
+
+@dataclass
+class Terms:
+    """The loss terms of R rows (parameter sets) over F frames, as tensors.
+
+    ``chamfer`` (R, F, K) each object's Chamfer per frame, NaN where it is not scored (no
+    observed point or no particle; every object with the scene-level loss); ``chamfer_total``
+    (R, F) each frame's Chamfer (the objects' sum, or the scene-level one); ``track`` (R, F, K)
+    each object's track loss; ``silhouette`` (R, G) summed over the frames (G = K, or 1 with the
+    scene-level loss). A term whose weight is 0, or without its data, is zeros. Differentiable in
+    the particles.
+    """
+
+    chamfer: torch.Tensor
+    chamfer_total: torch.Tensor
+    track: torch.Tensor
+    silhouette: torch.Tensor
+
+
+def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarray,
+                 observed: ObservedTensors, object_ids: list[int], frames: slice, loss: LossConfig,
+                 splat_radius: float) -> Terms:
+    """Every loss term of R rows of particles at once, on the particles' device.
+
+    ``x`` (R, F, N, 3) float64 the particles at ``frames`` of ``observed``; ``visible`` (R, N)
+    those inside each row's surface, which the Chamfer and silhouette terms score (the track
+    term reads every particle); ``object_index`` (N,) each one's object. The same terms as
+    ``geometry_loss``, ``silhouette_losses`` and ``track_loss`` (to float64 rounding; a nearest
+    neighbour tie may be broken otherwise) for every row and frame, without a KD-tree or a
+    round trip to the host per frame.
+    """
+    rows, n_frames = x.shape[:2]
+    n_objects = len(object_ids)
+    zeros = x.new_zeros((rows, n_frames, n_objects))
+    chamfer = torch.full_like(zeros, math.nan)
+    if loss.per_object:
+        total = zeros[..., 0]
+        for k in range(n_objects):
+            mine = np.flatnonzero(object_index == k)
+            if len(mine):
+                values, scored = _chamfer_rows(x[:, :, mine], visible[:, mine], observed.points[k][frames],
+                                               observed.valid[k][frames])
+                chamfer[..., k] = torch.where(scored, values, math.nan)
+                total = total + torch.where(scored, values, 0.0)
+    else:
+        total = _chamfer_rows(x, visible, observed.union[frames], observed.union_valid[frames])[0]
+    track = zeros
+    if loss.track_weight > 0 and observed.tracks is not None:
+        track = track_terms(x, observed.tracks, frames, loss.track_scale, n_objects)
+    silhouette = x.new_zeros((rows, n_objects if loss.per_object else 1))
+    if loss.silhouette_weight > 0 and observed.masks is not None:
+        shown = np.arange(len(observed.masks.frame_weight))[frames]
+        for chunk, part in _splat_chunks(visible.sum(dim=1).tolist(), n_frames, str(x.device)):
+            silhouette = silhouette.index_add(0, torch.as_tensor(chunk, device=x.device), _silhouette_batch(
+                x[chunk, part], visible[chunk], object_index, object_ids, observed.masks, shown[part],
+                splat_radius, loss.per_object))
+    return Terms(chamfer, total, track, silhouette)
+
+
+def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int, height: int,
+                width: int) -> torch.Tensor:
+    """(I, H, W) soft masks A = 1 - prod_i (1 - opacity w_i(p)) of I images, Gaussian w_i.
+
+    ``uv`` (I, M, 2) pixel positions, ``sigma`` (I, M) splat radii in pixels, ``valid`` (I, M)
+    the particles that count (in front of the camera), ``reach`` the pixels a splat reaches
+    either way (3 sigma, ``_reach``).
+    """
+    n_images = uv.shape[0]
     offsets = torch.arange(-reach, reach + 1, dtype=uv.dtype, device=uv.device)
     dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
     base = torch.round(uv.detach())
@@ -121,14 +387,24 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, heig
     d2 = (px - uv[..., 0, None]) ** 2 + (py - uv[..., 1, None]) ** 2
     w = SPLAT_OPACITY * torch.exp(-d2 / (2 * sigma[..., None] ** 2))
     log_clear = torch.log1p(-w)[inside]
-    frame = torch.arange(n_frames, device=uv.device).reshape(-1, 1, 1)
-    index = (frame * (height * width) + py * width + px)[inside].long()
-    total = torch.zeros(n_frames * height * width, dtype=uv.dtype, device=uv.device)
-    return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_frames, height, width)
+    image = torch.arange(n_images, device=uv.device).reshape(-1, 1, 1)
+    index = (image * (height * width) + py * width + px)[inside].long()
+    total = torch.zeros(n_images * height * width, dtype=uv.dtype, device=uv.device)
+    return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_images, height, width)
+
+
+def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> list[int]:
+    """The pixels a splat reaches either way in each row's images (R,); 0 for a row with none.
+
+    3 of the largest ``sigma`` (R, F, M) of the row's ``valid`` particles, rounded up, 1 to 8.
+    """
+    largest = torch.where(valid, sigma.detach(), -math.inf).amax(dim=(1, 2))
+    reach = torch.where(largest > -math.inf, torch.clamp(torch.ceil(3 * largest), 1, 8), 0.0)
+    return [int(r) for r in reach.tolist()]
 
 
 @contextmanager
-def _torch_threads(device: str):
+def torch_threads(device: str):
     """Run torch on one CPU thread (on a CUDA ``device``, change nothing).
 
     These tensors are small, and a second OpenMP thread spinning for a core that another
@@ -149,6 +425,23 @@ SPLAT_BATCH = {"cpu": 1 << 18, "cuda": 1 << 25}
 """Splat-pixel pairs rendered in one batch: on a CPU about one frame of a few thousand
 particles (larger batches fall out of the cache: 20 frames at once took 5x as long as 20 one at
 a time), on a GPU every frame of a window (one frame at a time is launch overhead)."""
+
+
+def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[list[int], slice]]:
+    """The (rows, frames) rendered together, each about ``SPLAT_BATCH`` splat-pixel pairs.
+
+    ``counts`` the particles each row renders. A row whose frames fit a batch is rendered whole,
+    with as many such rows as fit; another row alone, a batch of frames at a time. A row is cut
+    the same way whatever rows share its batches, so that its loss does not depend on them (a
+    splat's reach is the largest of a row's batch, ``_reach``).
+    """
+    budget = SPLAT_BATCH["cpu" if device == "cpu" else "cuda"]
+    steps = [max(1, budget // (max(n, 1) * (2 * 3 + 1) ** 2)) for n in counts]  # 3-pixel splats typical
+    whole = [r for r, step in enumerate(steps) if n_frames <= step]
+    together = min([steps[r] for r in whole], default=0) // max(n_frames, 1)
+    return ([(whole[i:i + together], slice(None)) for i in range(0, len(whole), max(together, 1))]
+            + [([r], slice(f, f + step)) for r, step in enumerate(steps) if n_frames > step
+               for f in range(0, n_frames, step)])
 
 
 def silhouette_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
@@ -181,66 +474,62 @@ def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
                  views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
                  per_object: bool, device: str, grad: bool) -> tuple[np.ndarray, np.ndarray]:
     x = np.asarray(x, dtype=np.float64)
-    budget = SPLAT_BATCH["cpu" if device == "cpu" else "cuda"]
-    step = max(1, budget // (max(x.shape[1], 1) * (2 * 3 + 1) ** 2))  # 3-pixel splats typical
+    tensors = MaskTensors.of(views, masks, device)
     per, gradient = np.zeros(len(object_ids) if per_object else 1), np.zeros_like(x)
-    with _torch_threads(device), torch.set_grad_enabled(grad):
-        for first in range(0, len(x), step):
-            chunk = slice(first, first + step)
-            values, gradient[chunk] = _silhouette_batch(x[chunk], object_index, object_ids, views,
-                                                        masks[chunk], splat_radius, per_object,
-                                                        device, grad)
-            per += values
+    with torch_threads(device), torch.set_grad_enabled(grad):
+        for _, chunk in _splat_chunks([x.shape[1]], len(x), device):
+            xt = torch.tensor(x[None, chunk], requires_grad=grad, device=device)
+            values = _silhouette_batch(xt, None, object_index, object_ids, tensors,
+                                       np.arange(len(x))[chunk], splat_radius, per_object)[0]
+            if values.requires_grad:  # no gradient asked, or no particle in view
+                values.sum().backward()
+                gradient[chunk] = xt.grad[0].cpu().numpy()
+            per += values.detach().cpu().numpy()
     return per, gradient
 
 
-def _silhouette_batch(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
-                      views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
-                      per_object: bool, device: str, grad: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Per group (each object, or all with the scene-level loss) the loss of frames ``x``; dL/dx."""
-    n_frames = len(x)
-    counts = np.array([sum(v.name in m for v in views) for m in masks], dtype=np.float64)
-    n_groups = len(object_ids) if per_object else 1
-    if not counts.any():
-        return np.zeros(n_groups), np.zeros_like(x)
-    xt = torch.tensor(x, requires_grad=grad, device=device)
+def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_index: np.ndarray,
+                      object_ids: list[int], masks: MaskTensors, frames: np.ndarray,
+                      splat_radius: float, per_object: bool) -> torch.Tensor:
+    """Per row and group (each object, or all with the scene-level loss) the loss of ``frames``.
+
+    ``x`` (R, F, N, 3) the particles of R rows at ``frames`` (F,) of ``masks``, those
+    ``visible`` (R, N) rendered (None: all); returns (R, G), differentiable in ``x``.
+    """
+    rows, device = x.shape[0], x.device
     index = torch.as_tensor(object_index, device=device)
-    frame_weight = torch.as_tensor(np.divide(1.0, counts, out=np.zeros(n_frames), where=counts > 0),
-                                   device=device)
     groups = ([(index == k, [object_ids[k]]) for k in range(len(object_ids))] if per_object
               else [(torch.ones_like(index, dtype=torch.bool), list(object_ids))])
-    totals = [torch.zeros((), dtype=torch.float64, device=device) for _ in groups]
-    for view in views:
-        frames = [f for f in range(n_frames) if view.name in masks[f]]
-        if not frames:
+    totals = [torch.zeros(rows, dtype=torch.float64, device=device) for _ in groups]
+    for v, view in enumerate(masks.views):
+        local = np.flatnonzero(masks.framed[v][frames])
+        if not len(local):
             continue
-        rows = torch.as_tensor(frames, device=device)
-        T = torch.as_tensor(np.linalg.inv(view.T_world_optical), device=device)
-        cam = xt[rows] @ T[:3, :3].T + T[:3, 3]
+        shown = torch.as_tensor(frames[local], device=device)
+        T = masks.world_to_optical[v]
+        cam = x[:, torch.as_tensor(local, device=device)] @ T[:3, :3].T + T[:3, 3]
         front = cam[..., 2] > 1e-3
         z = torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))
-        K = torch.as_tensor(view.K, device=device)
+        K = masks.K[v]
         uv = cam[..., :2] / z[..., None] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
         sigma = torch.clamp(K[0, 0] * splat_radius / z, min=0.5)
-        observed = torch.as_tensor(np.stack([masks[f][view.name] for f in frames]).astype(np.int64),
-                                   device=device)
+        observed = masks.masks[v][shown]
         for g, (mine, ids) in enumerate(groups):
-            valid = front[:, mine]
-            if not bool(valid.any()):
-                continue
-            soft = _soft_masks(uv[:, mine], sigma[:, mine], valid, view.height, view.width)
-            target = torch.isin(observed, torch.as_tensor(ids, device=device)).to(soft.dtype)
-            known = ((target > 0) | (observed == 0)).to(soft.dtype)
+            valid = front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
+            reach = _reach(sigma[:, :, mine], valid)
+            target = torch.isin(observed, torch.as_tensor(ids, device=device)).to(x.dtype)
+            known = ((target > 0) | (observed == 0)).to(x.dtype)
             pixels = known.sum(dim=(1, 2))
-            # frames where every pixel is another object's, or no particle is in view: nothing
-            counted = (pixels > 0) & valid.any(dim=1)
-            per_frame = ((soft - target).abs() * known).sum(dim=(1, 2)) / pixels.clamp(min=1)
-            totals[g] = totals[g] + (per_frame * counted * frame_weight[rows]).sum()
-    values = torch.stack(totals)
-    if not values.requires_grad:  # no gradient asked, or no particle in view
-        return values.detach().cpu().numpy(), np.zeros_like(x)
-    values.sum().backward()
-    return values.detach().cpu().numpy(), xt.grad.cpu().numpy()
+            for value in sorted(set(reach) - {0}):  # rows of one reach together (no particle in view: 0)
+                same = torch.as_tensor([r for r, v in enumerate(reach) if v == value], device=device)
+                soft = _soft_masks(uv[same][:, :, mine].flatten(0, 1), sigma[same][:, :, mine].flatten(0, 1),
+                                   valid[same].flatten(0, 1), value, view.height, view.width)
+                soft = soft.unflatten(0, (len(same), len(local)))
+                # frames where every pixel is another object's, or no particle is in view: nothing
+                counted = (pixels > 0) & valid[same].any(dim=2)
+                per_frame = ((soft - target).abs() * known).sum(dim=(2, 3)) / pixels.clamp(min=1)
+                totals[g] = totals[g].index_add(0, same, (per_frame * counted * masks.frame_weight[shown]).sum(dim=1))
+    return torch.stack(totals, dim=1)
 
 
 def silhouette_loss(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],

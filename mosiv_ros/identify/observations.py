@@ -6,7 +6,8 @@ and optionally calibrated views with their instance masks for the 2D loss, and s
 attached to the particles (``TrackAttachment``) for the track loss. Objects are in the
 simulator's order; ``object_ids`` gives each one's id in the masks.
 
-What it is for: the data side of the losses, and the first-frame estimates the fit starts from
+What it is for: the data side of the losses (also as torch tensors on the device the losses are
+computed on, ``Observations.tensors``), and the first-frame estimates the fit starts from
 (initial velocities from centroid motion). What it is not for: building observations from
 images (``mosiv_ros.recon``) or losses (``mosiv_ros.identify.losses``).
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import torch
 from scipy.spatial import cKDTree
 
 MOTION_GAIN = 4.0
@@ -121,6 +123,92 @@ class View:
         return uv, z
 
 
+def padded(sets: list[np.ndarray], device: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Point sets (M_i, 3) as one padded float64 tensor (S, max M_i, 3) on ``device``.
+
+    Zeros past each set's end; returned with which entries are points (S, max M_i).
+    """
+    size = max([len(p) for p in sets] + [1])
+    points = np.zeros((len(sets), size, 3))
+    valid = np.zeros((len(sets), size), dtype=bool)
+    for i, p in enumerate(sets):
+        points[i, : len(p)], valid[i, : len(p)] = p, True
+    return torch.as_tensor(points, device=device), torch.as_tensor(valid, device=device)
+
+
+@dataclass
+class MaskTensors:
+    """Calibrated views and their instance masks over frames as tensors on ``device``.
+
+    ``masks[v]`` (F, H, W) int64 the object ids of view v (zeros where a frame has no mask of
+    it), ``framed[v]`` (F,) on the host, which frames have one; ``frame_weight`` (F,) one over
+    the number of views with a mask in each frame (0 for none); ``world_to_optical[v]`` (4, 4)
+    and ``K[v]`` (3, 3) float64. What the silhouette loss reads.
+    """
+
+    views: list[View]
+    masks: list[torch.Tensor]
+    framed: list[np.ndarray]
+    frame_weight: torch.Tensor
+    world_to_optical: list[torch.Tensor]
+    K: list[torch.Tensor]
+
+    @classmethod
+    def of(cls, views: list[View], masks: list[dict[str, np.ndarray]], device: str) -> MaskTensors:
+        """``masks[f][view name]`` (H, W) as tensors on ``device``."""
+        framed = [np.array([v.name in m for m in masks], dtype=bool) for v in views]
+        stacks = []
+        for v, has in zip(views, framed, strict=True):
+            stack = np.zeros((len(masks), v.height, v.width), dtype=np.int64)
+            for f in np.flatnonzero(has):
+                stack[f] = masks[f][v.name]
+            stacks.append(torch.as_tensor(stack, device=device))
+        counts = np.sum(framed, axis=0, dtype=np.float64) if views else np.zeros(len(masks))
+        weight = np.divide(1.0, counts, out=np.zeros(len(masks)), where=counts > 0)
+        return cls(list(views), stacks, framed, torch.as_tensor(weight, device=device),
+                   [torch.as_tensor(np.linalg.inv(v.T_world_optical), device=device) for v in views],
+                   [torch.as_tensor(v.K, device=device) for v in views])
+
+
+@dataclass
+class TrackTensors:
+    """A ``TrackAttachment`` as tensors on one device (positions zero where a track is not alive)."""
+
+    particles: torch.Tensor
+    weights: torch.Tensor
+    offset: torch.Tensor
+    positions: torch.Tensor
+    alive: torch.Tensor
+    confidence: torch.Tensor
+    object_index: torch.Tensor
+
+    @classmethod
+    def of(cls, tracks: TrackAttachment, device: str) -> TrackTensors:
+        alive = np.isfinite(tracks.positions[..., 0])
+        return cls(*(torch.as_tensor(a, device=device) for a in (
+            tracks.particles.astype(np.int64), tracks.weights, tracks.offset,
+            np.where(alive[..., None], tracks.positions, 0.0), alive, tracks.confidence,
+            tracks.object_index.astype(np.int64))))
+
+
+@dataclass
+class ObservedTensors:
+    """``Observations`` as tensors on one device, for the losses computed there.
+
+    ``points[k]`` (F, M, 3) and ``valid[k]`` (F, M): object k's observed points per frame,
+    padded (``padded``); ``union``/``union_valid`` all objects' together (the scene-level
+    loss); ``masks`` the views' masks (None without masks), ``tracks`` the tracks (None
+    without).
+    """
+
+    points: list[torch.Tensor]
+    valid: list[torch.Tensor]
+    union: torch.Tensor
+    union_valid: torch.Tensor
+    masks: MaskTensors | None
+    tracks: TrackTensors | None
+
+
 @dataclass
 class Observations:
     """Observed per-object geometry over frames 0..F-1 at ``frame_dt`` seconds apart.
@@ -139,12 +227,25 @@ class Observations:
     tracks: TrackAttachment | None = None
     """Surface tracks attached to the first frame's particles (None: no track loss)."""
     _trees: dict[int, list] = field(default_factory=dict, init=False, repr=False, compare=False)
+    _tensors: dict[str, ObservedTensors] = field(default_factory=dict, init=False, repr=False,
+                                                 compare=False)
 
     def trees(self, frame: int) -> list[cKDTree | None]:
         """KD-trees of each object's points at ``frame`` (built once, None where empty)."""
         if frame not in self._trees:
             self._trees[frame] = [cKDTree(p) if len(p) else None for p in self.points[frame]]
         return self._trees[frame]
+
+    def tensors(self, device: str) -> ObservedTensors:
+        """The observations as tensors on torch ``device`` (built once per device)."""
+        if device not in self._tensors:
+            objects = [padded([frame[k] for frame in self.points], device) for k in range(self.n_objects)]
+            union = padded([np.concatenate([np.zeros((0, 3)), *frame]) for frame in self.points], device)
+            self._tensors[device] = ObservedTensors(
+                [p for p, _ in objects], [v for _, v in objects], *union,
+                MaskTensors.of(self.views, self.masks, device) if self.masks else None,
+                TrackTensors.of(self.tracks, device) if self.tracks is not None else None)
+        return self._tensors[device]
 
     def __post_init__(self) -> None:
         if self.frame_dt <= 0:

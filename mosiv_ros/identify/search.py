@@ -9,11 +9,11 @@ rollouts of the first ``search.frames`` frames (0 = all):
   the loss flat, so no gradient finds the way down: the samples must land below it) and
   otherwise the initial value +- ``search_decades`` decades (scale parameters) or 2 logit units;
 - samples are scored by the objective Adam minimises (Chamfer, silhouette and track terms,
-  ``batch_object_losses``). The best sample is kept; with per-object losses, so is the
-  composite that takes each object's parameters from the sample that fits that object best
-  (each object's loss depends mostly on its own parameters, so 32 samples search each object's
-  few dimensions rather than all objects' together), whichever of the two fits better
-  (``best``);
+  ``batch_object_losses``; on a GPU every row and frame of a batch at once, as tensors). The
+  best sample is kept; with per-object losses, so is the composite that takes each object's
+  parameters from the sample that fits that object best (each object's loss depends mostly on
+  its own parameters, so 32 samples search each object's few dimensions rather than all
+  objects' together), whichever of the two fits better (``best``);
 - the ``search.starts`` best points of this first round are the starts: each then goes through
   ``search.rounds`` more such rounds, each in a box 3x narrower than the last around its best
   so far (samples that move every coordinate at once follow the valleys of coupled parameters,
@@ -37,13 +37,21 @@ import logging
 import math
 import os
 import queue
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
-from mosiv_ros.identify.losses import geometry_loss, silhouette_object_losses, track_loss
+from mosiv_ros.identify.losses import (
+    geometry_loss,
+    silhouette_object_losses,
+    tensor_terms,
+    torch_threads,
+    track_loss,
+)
 from mosiv_ros.sim import Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
 from mosiv_ros.simulation import OFFSET
@@ -74,6 +82,9 @@ class GlobalSearch:
         self.identifier = identifier
         self.simulators: dict[tuple[int, int], Simulator] = {}
         """The batched simulators kept, by (rows, worker slot)."""
+        self.timing: dict[str, float] = {}
+        """Of the last ``batch_object_losses``: ``rollout_s`` and ``score_s``, each summed over its
+        rollouts (on several CPU cores the sums exceed the wall time)."""
 
     def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
                      frames: int | None = None, together: bool | None = None) -> np.ndarray:
@@ -105,8 +116,11 @@ class GlobalSearch:
         if together is None:
             together = cuda
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
-        for f in range(1, frames + 1):
-            obs.trees(f)  # built once, before threads share them
+        if fit.tensor_device is not None:  # built once, before threads share them
+            obs.tensors(fit.tensor_device)
+        else:
+            for f in range(1, frames + 1):
+                obs.trees(f)
         # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
         # slices of a batch) run side by side on every core, with the same results as in turn.
         workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
@@ -122,7 +136,7 @@ class GlobalSearch:
             for slot in range(workers):
                 idle.put(self._batch(1, slot))
 
-            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
                 sim = idle.get()
                 try:
                     return self._score(sim, self._configure(sim, row[None]), frames)
@@ -135,8 +149,10 @@ class GlobalSearch:
         else:
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 results = list(pool.map(lambda job: job(), jobs))
-        return (np.concatenate([total for total, _ in results]),
-                np.concatenate([per for _, per in results]))
+        self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
+                               strict=True))
+        return (np.concatenate([total for total, *_ in results]),
+                np.concatenate([per for _, per, _ in results]))
 
     def _batch(self, n: int, slot: int = 0) -> Simulator:
         """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
@@ -171,16 +187,35 @@ class GlobalSearch:
         return np.stack([boundary.inside(o[fit.index]) for o in offsets])
 
     def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
-               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Roll the configured ``batch`` out over ``frames`` frames and score each row."""
-        fit = self.identifier
-        obs, s = fit.problem.observations, fit.settings
+               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+        """Roll the configured ``batch`` out over ``frames`` frames and score each row.
+
+        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
+        """
+        obs = self.identifier.problem.observations
         n = batch.n_batch
+        tick = time.perf_counter()
         try:
             traj = batch.rollout(frames, substeps=substeps)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
-            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan)
+            return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
+        rolled = time.perf_counter()
+        if self.identifier.tensor_device is not None:
+            total, per = self._tensor_scores(traj, inside, frames)
+        else:
+            total, per = self._frame_scores(traj, inside, frames)
+        return total, per, (rolled - tick, time.perf_counter() - rolled)
+
+    def _frame_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """The losses (B,) and their per-object shares (B, K) of the rows of rollout ``traj``.
+
+        On the CPU: the Chamfer and track terms of each row and frame in threads (KD-tree
+        queries release the GIL), the silhouettes row by row.
+        """
+        fit = self.identifier
+        obs, s = fit.problem.observations, fit.settings
+        n = traj.shape[1]
 
         def frame_loss(job: tuple[int, int]) -> tuple[float, np.ndarray]:
             b, f = job
@@ -194,7 +229,6 @@ class GlobalSearch:
                 value, per = value + s.loss.track_weight * tracked, per + s.loss.track_weight * shares
             return value, per
 
-        # KD-tree queries release the GIL: score candidates and frames in threads
         jobs = [(b, f) for b in range(n) for f in range(1, frames + 1)]
         with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
             scored = list(pool.map(frame_loss, jobs))
@@ -209,6 +243,20 @@ class GlobalSearch:
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
         return total, per
+
+    def _tensor_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """``_frame_scores`` of every row and frame at once, as tensors on ``tensor_device``."""
+        fit = self.identifier
+        obs, loss, device = fit.problem.observations, fit.settings.loss, fit.tensor_device
+        with torch_threads(device), torch.no_grad():
+            x = torch.as_tensor(traj[1:frames + 1], device=device).to(torch.float64).transpose(0, 1)
+            terms = tensor_terms(x, torch.as_tensor(inside, device=device), fit.index, obs.tensors(device),
+                                 obs.object_ids, slice(1, frames + 1), loss, fit.settings.splat_radius)
+            shares = loss.silhouette_weight / frames * terms.silhouette
+            total = ((loss.chamfer_weight * terms.chamfer_total + loss.track_weight * terms.track.sum(dim=2))
+                     .mean(dim=1) + shares.sum(dim=1))
+            per = (loss.chamfer_weight * terms.chamfer + loss.track_weight * terms.track).mean(dim=1) + shares
+        return total.cpu().numpy(), per.cpu().numpy()
 
     def box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper coordinates the first round samples around ``u`` (module docstring)."""

@@ -1,0 +1,140 @@
+"""The identifier's loss path on a sample bag: a window's loss with its gradient, the batched search.
+
+    python benchmarks/loss_throughput.py bags/elastic_on_plastic --device cuda:0 --compare \\
+        --out out/loss_throughput_cuda.json
+    python benchmarks/loss_throughput.py bags/elastic_on_plastic --device cpu --rows 2 --repeats 1
+
+Builds the fit problem of each bag as ``mosiv run`` does (reconstruction, lifting, the first 70 %
+of the frames; ``--params-file`` gives the node parameters, by default the full budget of
+``config/mosiv.yaml``), starts from the problem's initial point (the observed initial
+velocities) and times:
+
+- ``window``: ``Identifier.window_loss`` over the whole fitted window with its gradient, split
+  as the fit's history splits an iteration (``Identifier.timing``: simulation forward, loss,
+  backward); two untimed calls first (kernel compilation, CUDA graph capture);
+- ``search``: ``GlobalSearch.batch_object_losses`` of ``--rows`` candidate rows drawn uniformly
+  from the search's first box (``GlobalSearch.box``: the material parameters' prior ranges),
+  as the search scores them by default (on a GPU one batch at the stiffest row's time step, on
+  the CPU each row at its own), split into rollout and scoring (``GlobalSearch.timing``); one
+  untimed call first.
+
+The losses are computed as the identifier chooses (``Identifier.tensor_device``: as tensors on
+a GPU, by KD-trees on the CPU); ``--compare`` times both paths on the same device, interleaved
+(tensors, KD-trees, tensors, ...). Each figure is the mean of ``--repeats`` timed calls (their
+minimum too). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mosiv_ros.cli import run_config
+from mosiv_ros.identify.fit import FitSettings, Identifier
+from mosiv_ros.identify.problem import build_problem, views_of
+from mosiv_ros.identify.run import problem_options
+from mosiv_ros.io.files import plain
+from mosiv_ros.pipeline import fit_window
+from mosiv_ros.prepare import RunConfig, prepare
+
+
+def identifier_of(bag: Path, config: RunConfig) -> tuple[Identifier, np.ndarray]:
+    """The identifier of ``bag``'s fit problem, set to its initial point, and the initial velocities."""
+    prepared = prepare(bag, config)
+    views = views_of(prepared.recording)
+    window = fit_window(len(prepared.frames), config.holdout)
+    problem = build_problem(prepared.frames[:window], prepared.lifted, prepared.recording.scene, views,
+                            prepared.recording.gripper_poses, problem_options(config.identify, views))
+    problem.sim_config.device = config.identify.device
+    identifier = Identifier(problem, FitSettings.of(config.identify))
+    obs = problem.observations
+    velocity = np.zeros((obs.n_objects, 6))
+    velocity[:, :3] = obs.initial_velocities()
+    identifier.apply(identifier.pack(), velocity)
+    return identifier, velocity
+
+
+def timed(identifier: Identifier, paths: dict[str, str | None], call, timing, repeats: int) -> dict:
+    """``call()`` ``repeats`` times on each loss path, the paths interleaved (A, B, A, B).
+
+    ``paths`` names the ``Identifier.tensor_device`` of each; per path the mean and least wall
+    time, the mean of each of ``timing()``'s parts, and the last call's result.
+    """
+    runs = {name: [] for name in paths}
+    for _ in range(repeats):
+        for name, device in paths.items():
+            identifier.tensor_device = device
+            tick = time.perf_counter()
+            result = call()
+            runs[name].append((time.perf_counter() - tick, dict(timing()), result))
+    return {name: {"wall_s": float(np.mean([w for w, _, _ in r])), "wall_min_s": float(np.min([w for w, _, _ in r])),
+                   **{key: float(np.mean([t[key] for _, t, _ in r])) for key in r[0][1]}, "result": r[-1][2]}
+            for name, r in runs.items()}
+
+
+def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool) -> dict:
+    identifier, velocity = identifier_of(bag, config)
+    obs = identifier.problem.observations
+    n = obs.n_frames - 1
+    paths = ({"tensor": identifier.tensor_device or "cpu", "kdtree": None} if compare
+             else {"tensor" if identifier.tensor_device else "kdtree": identifier.tensor_device})
+
+    u = identifier.pack()
+
+    def window() -> dict:
+        identifier.apply(u, velocity)  # the search's calls set the simulator to their first row
+        loss, du, _, per = identifier.window_loss(0, n, None, grad=True)
+        return {"loss": loss, "per_object": per.tolist(), "du": du.tolist()}
+
+    lo, hi = identifier.search.box(u)
+    candidates = lo + (hi - lo) * np.random.default_rng(0).random((rows, len(u)))
+
+    def search() -> dict:
+        total, per = identifier.search.batch_object_losses(candidates, velocity)
+        return {"loss": total.tolist(), "per_object": per.tolist()}
+
+    # untimed: kernel compilation, the CUDA graphs' capture (a window's second call), the batched
+    # simulator's buffers, the observations' tensors
+    timed(identifier, paths, window, lambda: {}, 2)
+    timed(identifier, paths, search, lambda: {}, 1)
+    result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
+              "frames": n, "free": [e.label for e in identifier.entries], "rows": rows,
+              "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
+              "window": timed(identifier, paths, window, lambda: identifier.timing, repeats),
+              "search": timed(identifier, paths, search, lambda: identifier.search.timing, repeats)}
+    for part in ("window", "search"):
+        print(part, json.dumps({name: {k: v for k, v in r.items() if k != "result"}
+                                for name, r in result[part].items()}), flush=True)
+    return result
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("bags", nargs="+", type=Path)
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--params-file", type=Path, default=Path("config/mosiv.yaml"))
+    parser.add_argument("--rows", type=int, default=32, help="candidate rows of the batched search")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--compare", action="store_true",
+                        help="time both loss paths, the tensors' and the KD-trees', interleaved")
+    parser.add_argument("--out", type=Path, default=Path("out/loss_throughput.json"))
+    args = parser.parse_args()
+    config = run_config(args.params_file, args.device)
+    results = [one(bag, config, args.rows, args.repeats, args.compare) for bag in args.bags]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(plain({
+        "benchmark": "loss_throughput", "device": args.device, "host": platform.node(),
+        "python": sys.version.split()[0], "argv": sys.argv[1:], "params_file": str(args.params_file),
+        "results": results}, null_nonfinite=True), indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
