@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.spatial import cKDTree
-from sim_scenes import scene
+from sim_scenes import DEVICE, scene
 
 from mosiv_ros.config import FitConfig, IdentifyConfig, LossConfig, from_mapping, updated
 from mosiv_ros.identify.coordinates import Coordinate
@@ -37,6 +37,11 @@ from mosiv_ros.sim.materials import MATERIAL_PARAMS
 from mosiv_ros.sim.sampling import box, sphere
 
 RNG = np.random.default_rng(0)
+
+# Two rollouts of the same parameters agree to the bit on the CPU; a GPU adds its float atomics
+# in no fixed order, so there they agree to rounding (benchmarks/RESULTS.md, "CUDA rollouts are
+# not bit-repeatable").
+SAME = 1e-12 if DEVICE == "cpu" else 1e-4
 
 
 def test_per_object_chamfer_gradient_matches_finite_differences():
@@ -294,7 +299,7 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
         identifier.apply(u, velocity)
         whole = identifier.window_loss(0, obs.n_frames - 1, None, grad=False)[0]
         searched = identifier.search.batch_losses(u[None], velocity, together=False)[0]
-        assert searched == pytest.approx(whole, rel=1e-6)
+        assert searched == pytest.approx(whole, rel=max(SAME, 1e-6))
         losses[weight] = searched
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
 
@@ -318,12 +323,12 @@ def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
         scored[device] = (window, *(identifier.search.batch_object_losses(candidates, velocity, together=together)
                                     for together in (False, True)))
     (window, *searched), (tensor_window, *tensor_searched) = scored[None], scored["cpu"]
-    assert tensor_window[0] == pytest.approx(window[0], rel=1e-12)
+    assert tensor_window[0] == pytest.approx(window[0], rel=SAME)
     for got, expected in zip(tensor_window[1:], window[1:], strict=True):  # dL/du, dL/dvelocity, per object
-        np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-12 * np.abs(expected).max())
+        np.testing.assert_allclose(got, expected, rtol=max(SAME, 1e-6), atol=SAME * np.abs(expected).max())
     for got, expected in zip(tensor_searched, searched, strict=True):
-        np.testing.assert_allclose(got[0], expected[0], rtol=1e-12)
-        np.testing.assert_allclose(got[1], expected[1], rtol=1e-12)
+        np.testing.assert_allclose(got[0], expected[0], rtol=SAME)
+        np.testing.assert_allclose(got[1], expected[1], rtol=SAME)
     assert np.abs(window[1]).min() > 0 and window[0] > 0
 
 

@@ -135,15 +135,18 @@ def p2g(
     k = obj[i - batch * n_particles]
     q = batch * n_objects + k
     fam = family[k]
+    # each particle array is read once: every read is an atomic add of its adjoint
+    x_i = src_x[i]
+    C_i = src_C[i]
     # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
-    f = wp.identity(n=3, dtype=float) + src_C[i] * dt
+    f = wp.identity(n=3, dtype=float) + C_i * dt
     b_trial = f * src_b[i] * wp.transpose(f)
     E_q = param(E, q, i)
     nu_q = param(nu, q, i)
     b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
                            param(friction_angle, q, i))
     dst_b[i] = b_new
-    tau = kirchhoff_stress(fam, b_new, src_C[i], E_q, nu_q, param(bulk_modulus, q, i),
+    tau = kirchhoff_stress(fam, b_new, C_i, E_q, nu_q, param(bulk_modulus, q, i),
                            param(viscosity, q, i))
     if grid_tau.shape[0] > 0:
         tau = tau + grid_tau[i]
@@ -151,9 +154,9 @@ def p2g(
     vol = volume[i]
     mass = param(density, q, i) * vol
     # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
-    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + src_C[i] * mass
-    base = stencil_base(src_x[i], lo, inv_dx, dims)
-    fx = (src_x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C_i * mass
+    base = stencil_base(x_i, lo, inv_dx, dims)
+    fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
@@ -459,8 +462,9 @@ def g2p(
     batch = i // n_particles
     k = obj[i - batch * n_particles]
     inv_dx = 1.0 / dx
-    base = stencil_base(src_x[i], lo, inv_dx, dims)
-    fx = (src_x[i] - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    x_i = src_x[i]  # read once: every read is an atomic add of its adjoint
+    base = stencil_base(x_i, lo, inv_dx, dims)
+    fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
@@ -478,7 +482,7 @@ def g2p(
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
-    x_new = src_x[i] + new_v * dt
+    x_new = x_i + new_v * dt
     if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
         # a substep below the plane is put back onto it and loses its velocity into it, so
