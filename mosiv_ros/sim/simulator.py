@@ -182,7 +182,8 @@ class _Arena:
     A substep's grid is ten arrays and a frame's backward clears the gradients of some thousand
     (four per state and nine per grid, for each of its substeps): on a GPU each clear is a
     memset node of about a microsecond whatever its size, which at the few thousand particles
-    of an identification was a fifth of a frame's backward (benchmarks/RESULTS.md).
+    of an identification was a fifth of a frame's backward (benchmarks/RESULTS.md). The arrays
+    are views of ``memory``, which only the arena holds: whoever keeps the arrays keeps it.
     """
 
     ALIGN = 16
@@ -412,11 +413,7 @@ class Simulator:
         self.hi = lo + (np.asarray(self.dims) - 1) * self.dx
         self.n_nodes = int(np.prod(self.dims))
         self._check_inside(particles)
-        cells = self._stencil_cells(particles.x)
-        sort = config.cell_order
-        if sort is None:
-            sort = self.device.startswith("cuda") and shared_cells(cells) < SORT_BELOW
-        self._order = np.argsort(cells, kind="stable") if sort else None
+        self._order = self._cell_order(particles.x, config.cell_order)
         if self._order is not None:
             particles = Particles(x=particles.x[self._order], volume=particles.volume[self._order],
                                   object_index=particles.object_index[self._order],
@@ -520,6 +517,18 @@ class Simulator:
                     f"{x.max(axis=0).round(4).tolist()} m, outside the simulation domain "
                     f"{(self.lo + margin).round(4).tolist()}..{(self.hi - margin).round(4).tolist()}"
                     f" m (the grid minus {WALL_CELLS + 1} wall cells); enlarge the domain")
+
+    def _cell_order(self, x: np.ndarray, asked: bool | None) -> np.ndarray | None:
+        """The particles' order sorted by ``_stencil_cells``, or None to keep the given one.
+
+        ``asked``: ``SimConfig.cell_order``; by default the cells are not even computed on the CPU.
+        """
+        if asked is False or (asked is None and not self.device.startswith("cuda")):
+            return None
+        cells = self._stencil_cells(x)
+        if asked is None and shared_cells(cells) >= SORT_BELOW:
+            return None
+        return np.argsort(cells, kind="stable")
 
     def _stencil_cells(self, x: np.ndarray) -> np.ndarray:
         """The grid cell (linear index) where each particle's stencil starts.
@@ -905,7 +914,7 @@ class Simulator:
         # a caller who follows the progress, read each frame's check at once and stop there.
         positions = wp.empty((n_frames + 1) * B * N, dtype=wp.vec3, device=self.device)
         row = 4 * B * self.n_objects
-        stats = wp.array(np.tile(np.float32([0.0, 0.0, 0.0, np.inf]), n_frames * row // 4),
+        stats = wp.array(np.tile(np.float32([0.0, 0.0, 0.0, np.inf]), n_frames * B * self.n_objects),
                          dtype=float, device=self.device)
         early = self.device == "cpu" or progress is not None
         self._keep_positions(states[0], positions, 0)
