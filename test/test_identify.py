@@ -9,6 +9,7 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 import torch
+import warp as wp
 from scipy.spatial import cKDTree
 from sim_scenes import DEVICE, scene
 
@@ -41,7 +42,8 @@ RNG = np.random.default_rng(0)
 # Two rollouts of the same parameters agree to the bit on the CPU; a GPU adds its float atomics
 # in no fixed order, so there they agree to rounding (benchmarks/RESULTS.md, "CUDA rollouts are
 # not bit-repeatable").
-SAME = 1e-12 if DEVICE == "cpu" else 1e-4
+SAME = 1e-12 if DEVICE == "cpu" else 1e-3
+CPU_KERNELS = pytest.mark.skipif(not wp.is_cpu_available(), reason="this Warp build compiles no CPU kernels")
 
 
 def test_per_object_chamfer_gradient_matches_finite_differences():
@@ -332,6 +334,7 @@ def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
     assert np.abs(window[1]).min() > 0 and window[0] > 0
 
 
+@pytest.mark.skipif(DEVICE != "cpu", reason="CPU workers split CPU simulations only")
 def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
     # rows (each at its own time step) and slices of a batch (all at the stiffest row's) run side
     # by side, one simulator per core: the losses are those of one simulator doing them in turn
@@ -465,7 +468,7 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
     resumed_records: list[dict] = []
     resumed = Identifier(problem, settings, progress=resumed_records.append).run()
     assert len(resumed_records) == len(reference.history) - 4  # only what was left
-    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=1e-5)
+    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
     assert len(resumed.history) == len(reference.history)
 
 
@@ -674,7 +677,7 @@ def test_a_last_adam_step_that_diverges_loses_to_the_points_before_it():
     np.testing.assert_allclose(end_u, u)
     np.testing.assert_allclose(end_velocity, velocity)
     identifier.apply(u, velocity)
-    assert loss == identifier.window_loss(0, 6, None, grad=False)[0]
+    assert loss == pytest.approx(identifier.window_loss(0, 6, None, grad=False)[0], rel=SAME)
     assert identifier.sim.params.get("E")[0, 0] == pytest.approx(5e3, rel=1e-6)  # applied
 
 
@@ -728,7 +731,9 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
     std = coordinate_std(identifier, result)
     labels = [e.label for e in identifier.entries]
     assert labels == ["cube.E", "cube.nu", "cube.friction"]
-    assert np.isfinite(std[0]) and 0 < std[0] < 0.5 and std[2] == np.inf
+    assert np.isfinite(std[0]) and 0 < std[0] < 0.5
+    # flat on the CPU; on a GPU the float atomics' noise leaves a tiny curvature, a huge std
+    assert std[2] == np.inf if DEVICE == "cpu" else std[2] > 10.0
     # the same curvature from single rollouts: sqrt(2 L / (terms * d2L/du2)) along log E
     h = CURVATURE_STEP
     shifted = [result.u + np.array([s * h, 0.0, 0.0]) for s in (0.0, 1.0, -1.0)]
@@ -742,6 +747,7 @@ def test_laplace_standard_deviations_follow_the_loss_curvature_and_flag_what_the
 
 
 @pytest.mark.slow
+@CPU_KERNELS
 def test_a_fit_reports_search_iterations_and_uncertainty_each_up_to_its_total():
     problem, _ = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5)
     config = from_mapping(IdentifyConfig, {"curriculum": {"horizons": [2, 0], "iterations": 2},

@@ -25,6 +25,7 @@ What it is not for: losses, optimisation or observations (``mosiv_ros.identify``
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -803,11 +804,17 @@ class Simulator:
                 self._seen.add(key)
                 body()
                 return
+            # No garbage collection while capturing: collecting another simulator's graph
+            # destroys it, which CUDA forbids during a capture and which then fails this one.
+            collecting = gc.isenabled()
+            gc.disable()
             wp.capture_begin(device=self.device, force_module_load=False)
             try:
                 body()
             finally:
                 graph = wp.capture_end(device=self.device)
+                if collecting:
+                    gc.enable()
             self._graphs[key] = graph
         wp.capture_launch(graph)
 
