@@ -28,6 +28,12 @@ drag) at their true values, so that the truth is a point of the fit's model.
 A params file with ``loss: {track_weight: 0.0}`` leaves the track term out (the objective with
 and without tracks, side by side).
 
+``--centroids`` also rolls every row out over the whole recording and gives its centroid RMS
+error on the fitted and on the held-out frames against the reconstruction (the loop closure's
+measure, ``loop.residual.analyse``): what the twin predicts at that point, the truth included.
+The simulation domain then covers every frame, as the loop's does, so the losses can differ in
+the last digits from a scan without it.
+
 Writes JSON: the options, the base point, and per row the whole loss and each object's share.
 """
 
@@ -52,7 +58,9 @@ from mosiv_ros.identify.run import problem_options
 from mosiv_ros.io.files import plain
 from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.loop.residual import Floor, analyse
 from mosiv_ros.pipeline import fit_window
+from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.prepare import prepare
 from mosiv_ros.sim import BUILTIN_EFFECTS
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
@@ -122,6 +130,21 @@ def declare_true_effects(scene: Scene, truth: dict) -> None:
     scene.effects.extend(DeclaredEffect(e["type"], dict(e["params"])) for e in undeclared)
 
 
+def centroid_errors(identifier: Identifier, u: np.ndarray, velocity: np.ndarray, prepared,
+                    window: int) -> dict[str, float]:
+    """Centroid RMS error (m) of the rollout at ``u`` on the fitted and the held-out frames."""
+    identifier.apply(u, velocity)
+    frames = prepared.frames
+    positions = identifier.sim.rollout(len(frames) - 1)[:, 0].astype(np.float64)
+    objects = identifier.problem.objects
+    prediction = Prediction(frames[0].stamp_ns, np.arange(len(frames)) * identifier.problem.observations.frame_dt,
+                            positions, identifier.index, [o.id for o in objects], [o.name for o in objects],
+                            prepared.lifted.rgb)
+    ground = prepared.recording.scene.ground
+    floor = Floor(*ground.plane()) if ground is not None else None
+    return analyse(frames, prediction, window, floor).errors()
+
+
 def pairs(items: list[str], what: str) -> dict[str, str]:
     out = {}
     for item in items:
@@ -148,6 +171,8 @@ def main() -> int:
     parser.add_argument("--params-file", type=Path, default=Path("config/demo.yaml"))
     parser.add_argument("--holdout", type=float, default=HOLDOUT)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--centroids", action="store_true",
+                        help="also give each row's centroid error on the fitted and held-out frames")
     parser.add_argument("--out", type=Path, default=Path("out/objective_scan.json"))
     args = parser.parse_args()
 
@@ -162,8 +187,11 @@ def main() -> int:
         lifted = with_true_particles_of(lifted, args.bag, args.true_particles, true_objects)
     window = fit_window(len(prepared.frames), args.holdout)
     views = views_of(prepared.recording)
-    problem = build_problem(prepared.frames[:window], lifted, prepared.recording.scene, views,
+    simulated = prepared.frames if args.centroids else prepared.frames[:window]
+    problem = build_problem(simulated, lifted, prepared.recording.scene, views,
                             prepared.recording.gripper_poses, problem_options(config.identify, views))
+    if args.centroids:
+        problem.observations = problem.observations.select(slice(0, window))
     problem.sim_config.device = args.device
     declare_densities(asked_densities(args.density, {o.name: true_objects[o.name] for o in problem.objects}),
                       problem.objects)
@@ -216,11 +244,17 @@ def main() -> int:
     results = [{"entry": entry, "value": value, "loss": float(t),
                 "objects": dict(zip(names, map(float, p), strict=True))}
                for (entry, value), t, p in zip(named, total, per, strict=True)]
-    print(f"{'entry':28s} {'value':>10s} {'loss x1e5':>10s}  " + " ".join(f"{n:>9s}" for n in names))
+    if args.centroids:
+        for r, row in zip(results, rows, strict=True):
+            r["centroid_error"] = centroid_errors(identifier, row, v0, prepared, window)
+    print(f"{'entry':28s} {'value':>10s} {'loss x1e5':>10s}  " + " ".join(f"{n:>9s}" for n in names)
+          + ("  centroid error fitted / held-out (mm)" if args.centroids else ""))
     for r in results:
         value = "" if r["value"] is None else f"{r['value']:g}"
+        errors = r.get("centroid_error")
         print(f"{r['entry'] or 'base':28s} {value:>10s} {r['loss'] * 1e5:10.2f}  "
-              + " ".join(f"{v * 1e5:9.2f}" for v in r["objects"].values()))
+              + " ".join(f"{v * 1e5:9.2f}" for v in r["objects"].values())
+              + (f"  {errors['fitted'] * 1e3:.2f} / {errors['held_out'] * 1e3:.2f}" if errors else ""))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(plain({
         "benchmark": "objective_scan", "bag": str(args.bag), "device": args.device,
