@@ -17,7 +17,7 @@ within ``MIN_GAP``), plastic, sand or fluid objects, grippers, or effects other 
 Physics (SI units):
 
 - Each object (``sphere`` or ``box``) is a regular lattice of ``fem.cell`` cubes, each cut into
-  the 6 Kuhn tetrahedra around its main diagonal; a sphere's lattice is mapped onto the ball
+  the 6 Kuhn tetrahedra around its diagonal that points away from the centre; a sphere's lattice is mapped onto the ball
   shell by shell (the shell max|x| = s onto the sphere of radius s, each by the spherified-cube
   map), so its surface nodes lie on the sphere. Linear tets, mass lumped on the nodes (a quarter
   of each tet's mass on each of its nodes).
@@ -73,6 +73,7 @@ from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.bag import write_recording
 from mosiv_ros.io.errors import SceneError
+from mosiv_ros.io.fields import Fields
 from mosiv_ros.io.files import check_new_path
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
 from mosiv_ros.io.scene import Scene, SceneObject, load_yaml, read_scene_text
@@ -124,13 +125,14 @@ def read_scene(path: str | Path) -> tuple[SceneSpec, FemSettings]:
         raise SceneError("", "a scene file is a mapping", str(path))
     if "simulation" in document:
         raise SceneError("simulation", "is the MPM recorder's section; this engine reads 'fem'", str(path))
-    raw = document.pop("fem", None) or {}
-    if not isinstance(raw, dict) or set(raw) - set(FemSettings.__dataclass_fields__):
-        raise SceneError("fem", f"expected a mapping of {', '.join(FemSettings.__dataclass_fields__)}, "
-                         f"got {raw!r}", str(path))
-    settings = FemSettings(**{k: float(v) for k, v in raw.items()})
-    if min(settings.cell, settings.cfl) <= 0 or settings.damping < 0:
-        raise SceneError("fem", f"cell and cfl must be positive, the damping non-negative: {settings}", str(path))
+    try:
+        fields = Fields(document.pop("fem", None) or {}, "fem")
+        settings = FemSettings(fields.number("cell", FemSettings.cell, positive=True),
+                               fields.number("cfl", FemSettings.cfl, positive=True),
+                               fields.number("damping", FemSettings.damping, lower=0.0))
+        fields.done()
+    except SceneError as error:
+        raise SceneError(error.field, error.problem, str(path)) from None
     spec = parse_scene_file(yaml.safe_dump(document), source=str(path), base_dir=path.parent)
     for i, obj in enumerate(spec.objects):
         if obj.shape not in ("sphere", "box") or obj.family != "elastic":

@@ -232,7 +232,8 @@ def test_recording_is_read_back_by_the_project_with_its_truth(tmp_path):
 
 @pytest.mark.parametrize("old, new, field", [
     ("family: elastic, params: {E: 5.0e4,", "family: plastic, params: {yield_stress: 800, E: 5.0e4,", "objects[0]"),
-    ("fem: {cell: 0.012}", "fem: {cells: 0.012}", "fem"),
+    ("fem: {cell: 0.012}", "fem: {cells: 0.012}", "fem.cells"),
+    ("fem: {cell: 0.012}", "fem: {cell: -0.012}", "fem.cell"),
     ("{type: drag, coefficient: {ball: 1.5}, declared: false}", "{type: damping, viscosity: 1.0, declared: false}",
      "effects[0].type"),
     ("ground: {height: 0.0,", "ground: {height: 0.05,", "objects[1].position"),
