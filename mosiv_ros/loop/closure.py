@@ -32,19 +32,25 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    flight gives them; an effect with no free-flight force (a floor's, damping, a sensor's) waits
    for a later round. Where free flight shows no force, a force-law candidate whose first
    estimate would have shown there is ruled out.
-5. Refit the current model with no new effect, warm-started and given a candidate's budget (the
-   control: a better fit alone is never credited to an effect; if it beats the current model it
-   becomes the current model), and the model with each of the ``top_k`` leading candidates
-   whose R^2 reaches ``min_explained`` (the effect's knobs start at their first estimate, the
-   objects' parameters afresh, as in the first fit; a sensor effect's model on its corrected
-   observations), and roll out each twin.
+5. Refit the current model with no new effect (the control: a better fit alone is never
+   credited to an effect; if it beats the current model it becomes the current model). Where
+   free flight shows the force, warm-started and given a candidate's budget (free flight is the
+   evidence, the control measures the fit's spread); elsewhere afresh, by the very procedure of
+   a candidate's refit (search and curriculum from the defaults), so that what a new search
+   finds is not credited to the effect it was run with. Refit also the model with each of the
+   ``top_k`` leading candidates whose R^2 reaches ``min_explained`` (the effect's knobs start at
+   their first estimate, the objects' parameters afresh, as in the first fit; a sensor effect's
+   model on its corrected observations), and roll out each twin.
 6. **Acceptance**: a candidate with p knobs is accepted when its held-out centroid error E_new
    (RMS over the held-out frames and objects) satisfies
    E_new <= margin * exp(-penalty * p) * E_current
    (defaults 0.8 and 0.1: a one-knob effect must cut the held-out error by 28 %, a two-knob one
    by 35 %), E_current the better of the current model and its control; equivalently its
-   penalised score ln E + penalty * p beats the current model's by ln(1 / margin). Of several
-   accepted, the lowest held-out error wins. Where free flight shows the force and the
+   penalised score ln E + penalty * p beats the current model's by ln(1 / margin), and, as
+   nothing but the residual speaks for it, its model must leave at most ``explains`` times
+   ``significance`` of it (an effect that shrinks a residual many times the noise, where a
+   recording from another engine or a missing effect elsewhere leaves the model wrong, is not
+   named for it). Of several accepted, the lowest held-out error wins. Where free flight shows the force and the
    candidate's law explains it there, that is the evidence for the effect, and the refit need
    only predict the held-out frames no worse than the material-only models do (E_new at most
    the larger of the current model's and its control's): a fit that already hides an effect in
@@ -135,6 +141,9 @@ class LoopConfig:
     margin: float = 0.8
     penalty: float = 0.1
     max_rounds: int = 3
+    explains: float = 3.0
+    """A candidate free flight does not show is accepted only if its model leaves the residual at
+    most this many times ``significance`` (it must explain the residual, not only shrink it)."""
     moving_threshold: float = 0.01
     """Least observed centroid travel (m) for an object to count as moving."""
     contact_tolerance: float = 0.01
@@ -150,6 +159,8 @@ class LoopConfig:
             raise ValueError(f"margin must be in (0, 1] and penalty >= 0, got {self.margin}, {self.penalty}")
         if self.centroid_noise <= 0 or self.shape_noise <= 0:
             raise ValueError("centroid_noise and shape_noise must be positive")
+        if self.explains < 1.0:
+            raise ValueError(f"explains must be >= 1 (a multiple of significance), got {self.explains}")
 
     def threshold(self, knobs: int) -> float:
         """Largest held-out error ratio (new / current) that accepts an effect of ``knobs`` knobs."""
@@ -616,8 +627,10 @@ class LoopClosure:
             leading = self.leading(round_)
             spread = current.held_out_error
             if leading or round_.flight_force:  # the control: a candidate's budget, no new effect
-                round_.control = self.fit(current.effects, ctx, "refit without a new effect", "control",
-                                          warm=current)
+                round_.control = (self.fit(current.effects, ctx, "refit without a new effect", "control",
+                                           warm=current) if round_.flight_force else
+                                  self.fit(current.effects, ctx, "refit afresh without a new effect",
+                                           "control-afresh"))
                 spread = max(spread, round_.control.held_out_error)
                 if round_.control.held_out_error < current.held_out_error:
                     current = round_.control
@@ -708,6 +721,11 @@ class LoopClosure:
             ranked.threshold = self.loop.threshold(len(ranked.estimate))
             ranked.accepted = bool(ranked.ratio <= ranked.threshold)
             ranked.note = f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})"
+            left, most = self.significance(ranked.refit), self.loop.explains * self.loop.significance
+            if ranked.accepted and left > most:
+                ranked.accepted = False
+                ranked.note += (f"; but it leaves {left:.3g} noise units of residual (names <= {most:.3g}): "
+                                "the model is wrong elsewhere, not credited to this effect")
         worse = self.flight_contradiction(current, ranked, ctx)
         if worse is not None:
             ranked.accepted = False
