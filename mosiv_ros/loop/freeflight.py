@@ -21,8 +21,9 @@ measures that force:
 - **The test against zero.** The null model: per segment a start position and velocity, and
   the declared gravity only. Its weighted residual against the flexible curves' is a chi-square
   statistic with as many degrees of freedom as the curves have more parameters: a force acts
-  when its p-value is below ``P_VALUE`` *and* the force left (the RMS acceleration of a cubic
-  fitted to each segment's residual) is at least ``MIN_FORCE`` (m/s^2; a force too small to
+  when its p-value is below ``P_VALUE`` *and* the force left (the RMS acceleration of a
+  quadratic or a cubic fitted to each segment's residual, whichever shows more beyond the
+  noise) is at least ``MIN_FORCE`` (m/s^2; a force too small to
   matter is not worth a name even when the carving resolves it). The same test after a law's fit says whether
   a force beyond the law's remains.
 - **A force law.** A candidate effect's free-flight force (``ForceLaw``: acceleration per unit
@@ -165,14 +166,20 @@ class FreeFlight:
     def force(self, fit: LawFit) -> float:
         """What the fit leaves of a force (m/s^2).
 
-        The RMS over every free frame of the acceleration of a cubic fitted to each segment's
-        residual per axis (a force that is constant or changes steadily along the flight, as one
-        that depends on the position does), less what the centroid noise alone puts into it.
+        The RMS over every free frame of the acceleration of a polynomial fitted to each
+        segment's residual per axis, less what the centroid noise alone puts into it; the larger
+        of a quadratic's (a constant force: over a segment of five or six frames a cubic's
+        acceleration is mostly noise, which hid a 1.5 m/s^2 wind) and a cubic's (a force that
+        changes steadily along the flight, as one that depends on the position does).
         """
+        return max(self._force(fit, degree) for degree in (2, 3))
+
+    def _force(self, fit: LawFit, most: int) -> float:
+        """``force`` from polynomials of degree at most ``most`` (fewer where a segment is short)."""
         squared, noise = [], []
         for i, s in enumerate(self.segments):
             t = self.times[s.start:s.stop] - self.times[s.start]
-            degree = min(3, len(t) - 2)
+            degree = min(most, len(t) - 2)
             A = np.vander(t, degree + 1, increasing=True)
             coef = np.linalg.lstsq(A, self.observed[s.start:s.stop, s.object] - fit.predicted[i], rcond=None)[0]
             # d^2/dt^2 of sum_j c_j t^j, as rows acting on the coefficients
