@@ -58,9 +58,10 @@ from mosiv_ros.identify.run import problem_options
 from mosiv_ros.io.files import plain
 from mosiv_ros.io.scene import DeclaredEffect, Scene
 from mosiv_ros.lifting.lift import LiftedParticles
+from mosiv_ros.loop.closure import rollout
+from mosiv_ros.loop.observations import Observations
 from mosiv_ros.loop.residual import Floor, analyse
 from mosiv_ros.pipeline import fit_window
-from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.prepare import prepare
 from mosiv_ros.sim import BUILTIN_EFFECTS
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, read_ground_truth, read_ground_truth_particles
@@ -134,15 +135,10 @@ def centroid_errors(identifier: Identifier, u: np.ndarray, velocity: np.ndarray,
                     window: int) -> dict[str, float]:
     """Centroid RMS error (m) of the rollout at ``u`` on the fitted and the held-out frames."""
     identifier.apply(u, velocity)
-    frames = prepared.frames
-    positions = identifier.sim.rollout(len(frames) - 1)[:, 0].astype(np.float64)
-    objects = identifier.problem.objects
-    prediction = Prediction(frames[0].stamp_ns, np.arange(len(frames)) * identifier.problem.observations.frame_dt,
-                            positions, identifier.index, [o.id for o in objects], [o.name for o in objects],
-                            prepared.lifted.rgb)
+    prediction = rollout(identifier, Observations(prepared.frames, prepared.lifted))
     ground = prepared.recording.scene.ground
     floor = Floor(*ground.plane()) if ground is not None else None
-    return analyse(frames, prediction, window, floor).errors()
+    return analyse(prepared.frames, prediction, window, floor).errors()
 
 
 def pairs(items: list[str], what: str) -> dict[str, str]:

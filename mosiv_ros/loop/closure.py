@@ -50,8 +50,8 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    nothing but the residual speaks for it, its model must leave at most ``explains`` times
    ``significance`` of it (an effect that shrinks a residual many times the noise, where a
    recording from another engine or a missing effect elsewhere leaves the model wrong, is not
-   named for it). Of several accepted, the lowest held-out error wins. Where free flight shows the force and the
-   candidate's law explains it there, that is the evidence for the effect, and the refit need
+   named for it). Of several accepted, the lowest held-out error wins. Where free flight shows
+   the force and the candidate's law explains it there, that is the evidence for the effect, and the refit need
    only predict the held-out frames no worse than the material-only models do (E_new at most
    the larger of the current model's and its control's): a fit that already hides an effect in
    its materials and initial velocities can predict frames where the effect no longer acts (an
@@ -364,7 +364,7 @@ class LoopClosure:
                                      phase_progress(self.progress, label),
                                      self.fitted_frames(observations))
         with_family_scores(identification.estimates, self.families)
-        prediction = self.rollout(identification.identifier, observations)
+        prediction = rollout(identification.identifier, observations)
         fitted = [(c, c.read(identification.estimates, prediction, ctx)) for c, _ in effects]
         closed = self.scene
         for candidate, values in fitted:
@@ -378,24 +378,13 @@ class LoopClosure:
         model.information = self.information(model)
         return model
 
-    def rollout(self, identifier: Identifier, observations: Observations) -> Prediction:
-        """The identifier's simulation, as it stands, over every observed frame."""
-        frames = observations.frames
-        n = len(frames) - 1
-        dt = identifier.problem.observations.frame_dt
-        positions = identifier.sim.rollout(n)[:, 0].astype(np.float64)
-        objects = identifier.problem.objects
-        return Prediction(frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
-                          identifier.index, [o.id for o in objects], [o.name for o in objects],
-                          observations.lifted.rgb)
-
     def probe(self, model: Model, scene: Scene, ctx: Context) -> Prediction:
         """``model`` with ``scene``'s declaration instead of its own, rolled out unfitted."""
         problem = self.problem(scene, [], ctx, model.observations)
         _start_at(problem, model.estimates)
         identifier = Identifier(problem, FitSettings.of(self.identify))
         identifier.start_from(model.identification.identifier.offsets, model.identification.result.velocity)
-        return self.rollout(identifier, model.observations)
+        return rollout(identifier, model.observations)
 
     def analyse(self, prediction: Prediction, observations: Observations) -> ResidualAnalysis:
         views = self.views if self.loop.silhouettes else ()
@@ -721,8 +710,9 @@ class LoopClosure:
             ranked.threshold = self.loop.threshold(len(ranked.estimate))
             ranked.accepted = bool(ranked.ratio <= ranked.threshold)
             ranked.note = f"held-out error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f})"
-            left, most = self.significance(ranked.refit), self.loop.explains * self.loop.significance
-            if ranked.accepted and left > most:
+            most = self.loop.explains * self.loop.significance
+            left = self.significance(ranked.refit) if ranked.accepted else 0.0
+            if left > most:
                 ranked.accepted = False
                 ranked.note += (f"; but it leaves {left:.3g} noise units of residual (names <= {most:.3g}): "
                                 "the model is wrong elsewhere, not credited to this effect")
@@ -769,6 +759,18 @@ class LoopClosure:
         values = {k: v for _, fitted in ranked.refit.effects for k, v in fitted.items()}
         worse = self.flight.chi2_at(joint, values) - self.flight.fit(joint).chi2
         return worse if worse > chi2.ppf(1.0 - P_VALUE, len(joint.labels)) else None
+
+
+def rollout(identifier: Identifier, observations: Observations) -> Prediction:
+    """The identifier's simulation, as it stands, over every observed frame."""
+    frames = observations.frames
+    n = len(frames) - 1
+    dt = identifier.problem.observations.frame_dt
+    positions = identifier.sim.rollout(n)[:, 0].astype(np.float64)
+    objects = identifier.problem.objects
+    return Prediction(frames[0].stamp_ns, np.arange(n + 1) * dt, positions,
+                      identifier.index, [o.id for o in objects], [o.name for o in objects],
+                      observations.lifted.rgb)
 
 
 def _laws(effects: Sequence[tuple[Candidate, dict[str, float]]], ctx: Context) -> ForceLaw | None:
