@@ -211,7 +211,8 @@ class IdentifyConfig(FitConfig):
 
     device: str = _param("auto", "Simulation device: 'auto' (CUDA when available), 'cpu' or 'cuda:N'.")
     window: int = _param(0, "Observed frames to fit; 0 = every frame received before the stream goes idle.", 0, 100000)
-    idle_timeout: float = _param(3.0, "Seconds without a new observed frame after which the fit starts.", 0.0, 3600.0)
+    idle_timeout: float = _param(3.0, "Seconds without a new observed frame (or surface tracks, while a node "
+                                 "publishes them) after which the fit starts.", 0.0, 3600.0)
     uncertainty: bool = _param(True, "Estimate a standard deviation per parameter (Laplace).")
     density_ratios: bool = _param(
         False, "Also fit the objects' undeclared densities. Only their ratios show (in contact), so "

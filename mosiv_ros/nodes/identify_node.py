@@ -5,7 +5,9 @@ Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set), ``/mosiv/su
 same stamp: the fit's track loss) and ``/mosiv/particles`` (latched). Once it has the particles
 and ``window`` frames from the particles' frame on (with ``window`` 0: at least two frames and
 ``idle_timeout`` seconds without a new one; with a window that the stream never fills: three
-times that), it runs the core's ``identify_objects`` in a worker thread (an object whose family
+times that), and, while a node publishes surface tracks, once each of those frames has its tracks
+or the streams were quiet for ``idle_timeout`` seconds (tracks and frame sets travel on two
+topics, so either may arrive first), it runs the core's ``identify_objects`` in a worker thread (an object whose family
 the scene leaves out gets one of ``families``, chosen by held-out error first), reporting
 progress on ``/diagnostics`` and in its log, then publishes ``/mosiv/material_estimates``
 (diagnostic_msgs/DiagnosticArray, latched: one status per object named ``mosiv/<object>`` with
@@ -87,6 +89,7 @@ class IdentifyNode(Node):
         self.tracks: dict[int, TrackPoints] = {}
         self.particles: LiftedParticles | None = None
         self.last_frame = time.monotonic()
+        self.last_tracks = 0.0
         self.worker: threading.Thread | None = None
         self.published = False  # estimates of the fit are on /mosiv/material_estimates
         self.create_subscription(
@@ -113,6 +116,7 @@ class IdentifyNode(Node):
     def _on_tracks(self, tracks: TrackPoints) -> None:
         if self.worker is None:
             self.tracks[tracks.stamp_ns] = tracks
+            self.last_tracks = time.monotonic()
 
     def _on_particles(self, particles: LiftedParticles) -> None:
         self.particles = particles
@@ -137,6 +141,9 @@ class IdentifyNode(Node):
             self.get_logger().warning(f"the stream went quiet after {len(frames)} of the {window} "
                                       "frames of the window; fitting those")
         tracked = sum(f.tracks is not None for f in frames)
+        if tracked < len(frames) and self.count_publishers(TRACKS_TOPIC) \
+                and time.monotonic() - max(self.last_frame, self.last_tracks) <= self.config.idle_timeout:
+            return  # the window's tracks may still be on their way
         self.get_logger().info(f"fitting {len(frames)} frames from stamp {frames[0].stamp_ns} ns "
                                f"({tracked} with surface tracks)")
         self.worker = threading.Thread(target=self._fit, args=(frames,), daemon=True)
