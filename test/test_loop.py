@@ -24,7 +24,8 @@ from synth_scenes import record_scene
 from mosiv_ros.config import IdentifyConfig, LiftingConfig, from_mapping, updated
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig
-from mosiv_ros.loop.observations import Reobserver
+from mosiv_ros.loop.library import Context, FloorTiltCandidate
+from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.prepare import RunConfig, prepare
 
 THROW = {
@@ -133,6 +134,43 @@ def test_undeclared_tilted_floor_is_named_fitted_and_cuts_the_held_out_error(tmp
     assert values["ground.normal[0]"] == pytest.approx(0.25, abs=0.03)
     assert abs(values["ground.normal[1]"]) < 0.03
     assert _factor(tilt) >= 2.0
+
+
+@pytest.mark.slow
+def test_a_floor_tilt_remakes_the_observations_with_its_floor_as_their_lower_bound(tmp_path_factory):
+    # the cube rests where a floor tilted by 14 degrees lies 5 cm below the declared (flat) one
+    scene = _scene([{"type": "floor_tilt", "normal": [0.25, 0.0, 1.0], "declared": False},
+                    {"type": "floor_friction", "friction": 1.0, "declared": True}],
+                   position=[0.2, 0.0, -0.015], velocity=[0.0, 0.0, 0.0])
+    scene["duration"] = 0.1
+    scene["cameras"].update(count=3, look_at=[0.1, 0.0, 0.0])
+    bag = record_scene(tmp_path_factory.mktemp("loop"), scene, "low")
+    config = RunConfig(lifting=LIFTING)
+    prepared = prepare(bag, config)
+    reobserver = Reobserver(prepared.recording, config)
+    given = Observations(prepared.frames, prepared.lifted)
+    ctx = Context(["jelly"], [False], prepared.recording.scene, 1 / 30, views_of(prepared.recording),
+                  given, reobserver)
+    tilt = FloorTiltCandidate()
+    changes = tilt.reobserve({"ground.normal[0]": 0.2512, "ground.normal[1]": -0.001}, ctx)
+    assert changes["ground"].normal == pytest.approx((0.25, 0.0, 1.0))  # rounded to QUANTUM
+    assert tilt.reobserve({"ground.normal[0]": 0.002}, ctx) == {}  # rounds to the declared floor
+    assert tilt.reobserve({"ground.normal[0]": 0.25}, dataclasses.replace(ctx, reobserver=None)) == {}
+    remade = reobserver.observe(ground=changes["ground"])
+    assert reobserver.observe(ground=changes["ground"]) is remade  # cached
+
+    def lowest_and_centroid(frame):
+        points = frame.objects[1].occupancy
+        return points[:, 2].min(), points.mean(axis=0)
+
+    truth_z = -0.25 * 0.2 + 0.03  # the cube's centre, 3 cm over the tilted floor at x = 0.2
+    for before, after in zip(given.frames, remade.frames, strict=True):
+        low_before, centre_before = lowest_and_centroid(before)
+        low_after, centre_after = lowest_and_centroid(after)
+        assert low_before >= -1e-9  # the declared floor cut everything below z = 0
+        assert low_after < -0.04  # the tilted floor keeps the cube's bottom (near -0.05 + the tilt)
+        assert abs(centre_after[2] - truth_z) < 0.01 < abs(centre_before[2] - truth_z)
+    assert remade.lifted.x[:, 2].mean() < given.lifted.x[:, 2].mean() - 0.01
 
 
 @pytest.mark.slow

@@ -311,11 +311,11 @@ class LoopClosure:
 
     def observations(self, effects: Sequence[tuple[Candidate, dict[str, float]]],
                      ctx: Context | None) -> Observations:
-        """The given observations, or those the (last) sensor effect among ``effects`` remakes."""
-        observations = self.given
+        """The given observations, or those remade as the ``effects`` at their values change them."""
+        changes: dict[str, object] = {}
         for candidate, values in effects:
-            observations = candidate.observe(values, ctx) or observations
-        return observations
+            changes.update(candidate.reobserve(values, ctx) if ctx is not None else {})
+        return ctx.reobserver.observe(**changes) if changes else self.given
 
     def problem(self, scene: Scene, effects: Sequence[Candidate], ctx: Context | None,
                 observations: Observations) -> FitProblem:
@@ -338,7 +338,8 @@ class LoopClosure:
         return problem
 
     def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
-            label: str, key: str, velocity: np.ndarray | None = None, warm: Model | None = None) -> Model:
+            label: str, key: str, velocity: np.ndarray | None = None, warm: Model | None = None,
+            follow: bool = True) -> Model:
         """Fit the declared model plus ``effects`` (knobs at their initial values).
 
         The objects' parameters start afresh (at the simulator's defaults), as in the first fit:
@@ -346,6 +347,11 @@ class LoopClosure:
         ``velocity`` (K, 3; NaN rows: estimate from the first frames) starts the initial
         velocities. ``warm``: a fit of the same model to continue from (no search), the control
         of an acceptance. ``key``: the fit's checkpoint folder within the round's.
+
+        The fit is on the observations the effects' initial values make (``observations``). Where
+        its fitted values make other ones (a tilted floor fitted to another tilt cuts them
+        elsewhere; a camera offset fitted to another whole frame), and ``follow``, it continues
+        once on those, from where it ended.
         """
         tick = time.perf_counter()
         identify = self.identify
@@ -376,6 +382,12 @@ class LoopClosure:
         model = Model(fitted, closed, observations, _material_estimates(identification.estimates),
                       identification, prediction, analysis, time.perf_counter() - tick)
         model.information = self.information(model)
+        if follow and self.observations(fitted, ctx) is not observations:
+            _LOG.info("%s: its fitted values remake the observations; fitting on those", label)
+            followed = self.fit(fitted, ctx, f"{label}, observations remade", f"{key}-remade",
+                                warm=model, follow=False)
+            followed.seconds += model.seconds
+            return followed
         return model
 
     def probe(self, model: Model, scene: Scene, ctx: Context) -> Prediction:
@@ -489,7 +501,8 @@ class LoopClosure:
         for knob in knobs:
             values = {k.label: k.neutral for k in knobs}
             values[knob.label] = knob.neutral + knob.probe
-            observed = candidate.observe(values, ctx)
+            observed = (self.observations(model.effects + [(candidate, values)], ctx)
+                        if candidate.sensor and candidate.reobserve(values, ctx) else None)
             try:  # a physical effect changes the prediction, a sensor effect the observations
                 probe = (self.probe(model, candidate.declare(model.scene, values, ctx), ctx)
                          if observed is None else model.prediction)
@@ -535,7 +548,9 @@ class LoopClosure:
         acting = flight.acts(base)
         for ranked in ranking:
             law = ranked.candidate.force_law(ctx)
-            corrected = ranked.candidate.observe(ranked.estimate, ctx) if acting else None
+            changes = acting and ranked.candidate.sensor and ranked.candidate.reobserve(ranked.estimate, ctx)
+            corrected = (self.observations(current.effects + [(ranked.candidate, ranked.estimate)], ctx)
+                         if changes else None)
             if law is None and corrected is not None:  # a sensor effect: does its correction remove it?
                 after = self.free_flight(current, corrected)
                 left = after.fit(base_law) if after.segments else None

@@ -10,21 +10,23 @@ A ``Candidate`` is one effect the loop can add to a scene's model. It declares
 - ``free(ctx)``: the simulator parameters a refit fits (and, per object, those it keeps fixed);
 - ``read(estimates, prediction, ctx)``: the fitted knob values from a refit's estimates (and,
   for an effect fitted on the observation side, from its rolled-out twin);
-- ``observe(values, ctx)``: for a sensor effect, the observations (stages 1-2) corrected for
-  it (``loop.observations``); None for a physical effect, which leaves them as they are;
+- ``reobserve(values, ctx)``: how the observations (stages 1-2) change at those values, as
+  arguments of ``Reobserver.observe`` ({} where they stay as they are): a sensor effect's
+  correction, or the floor that bounds the carving for a tilted floor;
 - ``force_law(ctx)``: the external force per unit mass its knobs put on an object in free flight
   (``loop.freeflight.ForceLaw``), or None for an effect that puts none there (a floor's, an
   internal damping, a sensor's): the evidence no material can absorb (``loop.freeflight``).
 
 Its residual signature is what the effect does to the residual: the loop switches each knob on
-by its ``probe`` step alone, in the current twin for a physical effect (rolled out) or in the
-observations for a sensor effect, and takes the change of the residual features (centroid
+by its ``probe`` step alone, in the current twin for a physical effect (rolled out; a tilted
+floor too, whose remade observations follow it into the refit) or in the observations for a
+sensor effect (``sensor``), and takes the change of the residual features (centroid
 paths, shape) per unit of the knob. The effect explains the
 residual to the degree that a combination of those columns, with the knobs inside their ranges,
 reproduces it (``closure``). Adding an effect means adding a ``Candidate`` here (and, for a new
 physical term, an ``Effect`` in ``mosiv_ros.sim.effects``); nothing else changes. A sensor
 effect's ``declare`` adds a declaration the simulator ignores (``mosiv_ros.simulation``'s
-``SENSOR_EFFECTS``); its ``observe`` does the work.
+``SENSOR_EFFECTS``); its ``reobserve`` does the work.
 
 The library (``LIBRARY``):
 
@@ -36,7 +38,10 @@ The library (``LIBRARY``):
   horizontal part is a uniform acceleration, its vertical change is second order), so this
   candidate stands for both;
 - ``floor_tilt``: the floor's normal tilted by (nx, ny) (the normal is (nx, ny, 1) normalised):
-  a downhill acceleration only where an object touches the floor;
+  a downhill acceleration only where an object touches the floor. With the recording at hand
+  its refit fits observations remade with the tilted floor as their lower bound (rounded to
+  ``QUANTUM``): the declared floor cuts away what lies below it, which on a floor that falls
+  away is the bottom of the objects;
 - ``floor_friction``: the declared floor friction is wrong: a deceleration along the sliding
   direction while on the floor (only when the declaration gives the friction; otherwise it is
   fitted anyway);
@@ -116,6 +121,8 @@ class Candidate:
     doc: ClassVar[str] = ""
     signature: ClassVar[str] = ""
     """The residual it predicts, in words (for the report)."""
+    sensor: ClassVar[bool] = False
+    """It changes the observations only: its signature is measured on them, the twin unchanged."""
 
     def applicable(self, ctx: Context) -> bool:
         return not any(e.name == self.name for e in ctx.scene.effects)
@@ -132,9 +139,9 @@ class Candidate:
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         raise NotImplementedError
 
-    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
-        """The observations corrected for a sensor effect at ``values``; None: unchanged."""
-        return None
+    def reobserve(self, values: dict[str, float], ctx: Context) -> dict[str, object]:
+        """``Reobserver.observe`` arguments of the observations at ``values``; {}: unchanged."""
+        return {}
 
     def force_law(self, ctx: Context) -> ForceLaw | None:
         """Its free-flight force per unit mass (None: it exerts none on a free object)."""
@@ -271,6 +278,9 @@ class FloorTiltCandidate(Candidate):
     doc = "the floor's normal tilted to (nx, ny, 1) (normalised)"
     signature = "downhill acceleration only while touching the floor"
     LABELS = ("ground.normal[0]", "ground.normal[1]")
+    QUANTUM = 0.005
+    """Step of the normal's components to which the observations' floor is rounded (0.29 degrees:
+    the cut moves by 2.5 mm at 0.5 m from the origin); remade observations are cached per step."""
 
     def applicable(self, ctx: Context) -> bool:
         return ctx.scene.ground is not None and ctx.scene.ground.normal is None
@@ -287,6 +297,14 @@ class FloorTiltCandidate(Candidate):
 
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return {label: estimates.scene[label] for label in self.LABELS}
+
+    def reobserve(self, values: dict[str, float], ctx: Context) -> dict[str, object]:
+        if ctx.reobserver is None or ctx.scene.ground.height is None:
+            return {}  # no recording to remake, or no declared floor that cuts
+        rounded = {label: round(values.get(label, 0.0) / self.QUANTUM) * self.QUANTUM for label in self.LABELS}
+        if not any(rounded.values()):
+            return {}
+        return {"ground": self.declare(ctx.scene, rounded, ctx).ground}
 
 
 def tilt_degrees(values: dict[str, float]) -> float:
@@ -335,6 +353,7 @@ class CameraTimeOffsetCandidate(Candidate):
     doc = "a camera's frames show the scene at t + offset (s) under stamp t (badly synchronised)"
     signature = ("one camera's silhouettes lead or lag the others': the carved volume shrinks and "
                  "its centroid shifts along the motion")
+    sensor = True
     MIN_CAMERAS = 3
     MAX_FRAMES = 1
     """Largest offset tried, in frames (the fit of the offset searches half a frame beyond)."""
@@ -367,9 +386,9 @@ class CameraTimeOffsetCandidate(Candidate):
     def free(self, ctx: Context) -> tuple[list[str], dict[str, set[str]]]:
         return [], {}
 
-    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
+    def reobserve(self, values: dict[str, float], ctx: Context) -> dict[str, object]:
         shifts = self.shifts(values, ctx)
-        return ctx.reobserver.observe(shifts) if any(shifts.values()) else None
+        return {"shifts": shifts} if any(shifts.values()) else {}
 
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         span = (self.MAX_FRAMES + 0.5) * ctx.frame_dt
@@ -390,7 +409,7 @@ class HeldCandidate(Candidate):
 
     def __init__(self, inner: Candidate, values: dict[str, float]) -> None:
         self.inner, self.values = inner, dict(values)
-        self.name, self.signature = inner.name, inner.signature
+        self.name, self.signature, self.sensor = inner.name, inner.signature, inner.sensor
         self.doc = f"{inner.doc} (held at the values free flight measured)"
 
     def applicable(self, ctx: Context) -> bool:
@@ -408,8 +427,8 @@ class HeldCandidate(Candidate):
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         return dict(self.values)
 
-    def observe(self, values: dict[str, float], ctx: Context) -> Observations | None:
-        return self.inner.observe(values, ctx)
+    def reobserve(self, values: dict[str, float], ctx: Context) -> dict[str, object]:
+        return self.inner.reobserve(values, ctx)
 
     def force_law(self, ctx: Context) -> ForceLaw | None:
         return self.inner.force_law(ctx)
