@@ -3,7 +3,7 @@
 A 6 cm soft cube (E and nu declared, so the fits stay a few seconds long) seen by two 64x48
 cameras at 30 fps: thrown through the air for 0.3 s (air drag, wind, a position-dependent force
 field the library does not have, or nothing), or set on a floor tilted by 14 degrees whose low
-friction is declared; seen by three cameras, one of them a frame ahead of its stamps (a sensor
+friction is declared (sliding below the declared floor); seen by three cameras, one of them a frame ahead of its stamps (a sensor
 effect); or, with E and nu undeclared, thrown down at the floor through air with drag. The
 drag recording also goes through ``mosiv close-loop`` and through the nodes (identify_node's
 ``close_loop``). Tolerances and the figures measured are stated in each test.
@@ -124,16 +124,20 @@ def test_undeclared_wind_is_named_fitted_and_cuts_the_held_out_error(tmp_path_fa
 
 @pytest.mark.slow
 def test_undeclared_tilted_floor_is_named_fitted_and_cuts_the_held_out_error(tmp_path_factory):
+    # the cube slides from 2 to 5 cm below the declared (flat) floor, which cuts its bottom off the
+    # observations: the refit continues on observations remade with its tilted floor
     scene = _scene([{"type": "floor_tilt", "normal": [0.25, 0.0, 1.0], "declared": False},
                     {"type": "floor_friction", "friction": 0.1, "declared": True}],
-                   position=[-0.1, 0.0, 0.06], velocity=[0.0, 0.0, 0.0])
+                   position=[0.05, 0.0, 0.0185], velocity=[0.0, 0.0, 0.0])
     scene["duration"] = 0.4
-    tilt = _close(tmp_path_factory, "tilt", scene, updated(FIT, {"curriculum.iterations": 15}))  # 6 stop at 0.21
+    scene["cameras"]["look_at"] = [0.1, 0.0, 0.0]
+    tilt = _close(tmp_path_factory, "tilt", scene, updated(FIT, {"curriculum.iterations": 15}))
     assert tilt.verdict == EXPLAINED and tilt.after.names == ["floor_tilt"]
     values = tilt.after.effects[0][1]  # the normal is (nx, ny, 1) normalised: truth (0.25, 0)
+    # measured 0.237 (0.189 when the refit kept the observations the declared floor cut)
     assert values["ground.normal[0]"] == pytest.approx(0.25, abs=0.03)
     assert abs(values["ground.normal[1]"]) < 0.03
-    assert _factor(tilt) >= 2.0
+    assert _factor(tilt) >= 2.0  # measured 76.0 -> 19.7 mm (3.9x; 2.7x on the cut observations)
 
 
 @pytest.mark.slow

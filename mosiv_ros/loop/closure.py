@@ -339,7 +339,7 @@ class LoopClosure:
 
     def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
             label: str, key: str, velocity: np.ndarray | None = None, warm: Model | None = None,
-            follow: bool = True) -> Model:
+            start: Observations | None = None, follow: bool = True) -> Model:
         """Fit the declared model plus ``effects`` (knobs at their initial values).
 
         The objects' parameters start afresh (at the simulator's defaults), as in the first fit:
@@ -348,10 +348,10 @@ class LoopClosure:
         velocities. ``warm``: a fit of the same model to continue from (no search), the control
         of an acceptance. ``key``: the fit's checkpoint folder within the round's.
 
-        The fit is on the observations the effects' initial values make (``observations``). Where
-        its fitted values make other ones (a tilted floor fitted to another tilt cuts them
-        elsewhere; a camera offset fitted to another whole frame), and ``follow``, it continues
-        once on those, from where it ended.
+        The fit is on ``start``, by default the observations the effects' values make
+        (``observations``). Where its fitted values make other ones (a tilted floor fitted to
+        another tilt cuts them elsewhere; a camera offset fitted to another whole frame), and
+        ``follow``, it continues once on those, from where it ended.
         """
         tick = time.perf_counter()
         identify = self.identify
@@ -360,7 +360,7 @@ class LoopClosure:
         scene = self.scene
         for candidate, values in effects:
             scene = candidate.declare(scene, values, ctx)
-        observations = self.observations(effects, ctx)
+        observations = start or self.observations(effects, ctx)
         problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
         problem.initial_velocity = velocity
         if warm is not None:
@@ -697,6 +697,17 @@ class LoopClosure:
                                problem_options(self.identify, self.views), self.views,
                                self.gripper_poses, phase_progress(self.progress, "family"))
 
+    def start(self, current: Model, candidate: Candidate, values: dict[str, float], ctx: Context) -> Observations:
+        """The observations a refit of ``current`` with ``candidate`` at ``values`` starts on.
+
+        A sensor effect's own (its first values are whole-frame shifts, which the refit keeps);
+        for a physical effect, ``current``'s: its first values are a linear guess (a floor
+        tilt's, from a residual measured on observations the declared floor cut, was twice the
+        truth on the second engine's tilt), and observations remade at a wrong tilt mislead its
+        refit, which instead continues on those its fitted values make (``fit``).
+        """
+        return self.observations(current.effects + ([(candidate, values)] if candidate.sensor else []), ctx)
+
     def try_candidate(self, ranked: Ranked, current: Model, ctx: Context, spread: float | None = None) -> None:
         """Refit with the candidate and judge it (see the module docstring, step 6).
 
@@ -707,7 +718,8 @@ class LoopClosure:
         candidate = ranked.candidate
         effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
         try:
-            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}", candidate.name, ranked.velocity)
+            ranked.refit = self.fit(effects, ctx, f"fit with {candidate.name}", candidate.name, ranked.velocity,
+                                    start=self.start(current, candidate, ranked.estimate, ctx))
         except (SimulationError, ValueError) as error:
             ranked.note = f"refit failed: {error}"
             return
@@ -750,7 +762,7 @@ class LoopClosure:
         effects = [(c, values) for c, values in current.effects] + [(held, held.values)]
         try:
             refit = self.fit(effects, ctx, f"fit with {held.name} held at free flight's values",
-                             f"{held.name}-held", ranked.velocity)
+                             f"{held.name}-held", ranked.velocity, start=self.start(current, held, held.values, ctx))
         except (SimulationError, ValueError) as error:
             ranked.note += f"; held at free flight's values, its refit failed: {error}"
             return
