@@ -14,6 +14,7 @@ from scipy.spatial import cKDTree
 from sim_scenes import DEVICE, scene
 
 from mosiv_ros.config import FitConfig, IdentifyConfig, LossConfig, from_mapping, updated
+from mosiv_ros.identify import losses
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
@@ -107,6 +108,22 @@ def test_silhouette_treats_pixels_of_another_object_as_unknown():
     empty = np.zeros((48, 64), dtype=np.uint16)
     assert silhouette_loss(x, index, [1], [view], {"top": occluded}, 0.01)[0] == 0.0
     assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
+
+
+def test_soft_masks_rendered_a_few_images_at_a_time_equal_those_rendered_at_once(monkeypatch):
+    # a call holds at most SPLAT_BATCH splat-pixel pairs (GPU memory): 7 images of 40 splats
+    # reaching 6 pixels (13 x 13) go two at a time, and no pixel changes
+    uv = torch.tensor(RNG.uniform(-5, 70, size=(7, 40, 2)))
+    sigma = torch.tensor(RNG.uniform(0.5, 2.0, size=(7, 40)))
+    valid = torch.tensor(RNG.random((7, 40)) > 0.2)
+    whole = losses._soft_masks(uv, sigma, valid, 6, 48, 64)
+    assert 0 < float(whole.sum()) < whole.numel()
+    monkeypatch.setitem(losses.SPLAT_BATCH, "cpu", 2 * 40 * 13**2)
+    calls, render = [], losses._soft_masks
+    monkeypatch.setattr(losses, "_soft_masks", lambda uv, *rest: calls.append(len(uv)) or render(uv, *rest))
+    batched = losses._soft_masks_in_batches(uv, sigma, valid, 6, 48, 64)
+    assert calls == [2, 2, 2, 1]
+    assert torch.equal(batched, whole)
 
 
 def _brute_squared(a: np.ndarray, b: np.ndarray) -> np.ndarray:

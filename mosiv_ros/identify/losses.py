@@ -393,6 +393,23 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reac
     return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_images, height, width)
 
 
+def _soft_masks_in_batches(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
+                           height: int, width: int) -> torch.Tensor:
+    """``_soft_masks`` of the I images a batch of at most ``SPLAT_BATCH`` splat-pixel pairs at a time.
+
+    The chunks of ``_splat_chunks`` count a typical splat of 7 x 7 pixels per particle and image;
+    a splat reaches up to 17 x 17, so one call could hold 6x the pairs (a full-size suite scene,
+    six cameras at 256 x 192, peaked at 37.8 GB of GPU memory; 9.0 GB so batched). Each image is
+    rendered alone, so the batching changes no value.
+    """
+    pairs = uv.shape[1] * (2 * reach + 1) ** 2
+    step = max(1, SPLAT_BATCH["cpu" if uv.device.type == "cpu" else "cuda"] // max(pairs, 1))
+    if step >= uv.shape[0]:
+        return _soft_masks(uv, sigma, valid, reach, height, width)
+    return torch.cat([_soft_masks(uv[i:i + step], sigma[i:i + step], valid[i:i + step], reach, height, width)
+                      for i in range(0, uv.shape[0], step)])
+
+
 def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> list[int]:
     """The pixels a splat reaches either way in each row's images (R,); 0 for a row with none.
 
@@ -522,8 +539,8 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
             pixels = known.sum(dim=(1, 2))
             for value in sorted(set(reach) - {0}):  # rows of one reach together (no particle in view: 0)
                 same = torch.as_tensor([r for r, v in enumerate(reach) if v == value], device=device)
-                soft = _soft_masks(uv[same][:, :, mine].flatten(0, 1), sigma[same][:, :, mine].flatten(0, 1),
-                                   valid[same].flatten(0, 1), value, view.height, view.width)
+                soft = _soft_masks_in_batches(uv[same][:, :, mine].flatten(0, 1), sigma[same][:, :, mine].flatten(0, 1),
+                                              valid[same].flatten(0, 1), value, view.height, view.width)
                 soft = soft.unflatten(0, (len(same), len(local)))
                 # frames where every pixel is another object's, or no particle is in view: nothing
                 counted = (pixels > 0) & valid[same].any(dim=2)
