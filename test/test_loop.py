@@ -3,10 +3,11 @@
 A 6 cm soft cube (E and nu declared, so the fits stay a few seconds long) seen by two 64x48
 cameras at 30 fps: thrown through the air for 0.3 s (air drag, wind, a position-dependent force
 field the library does not have, or nothing), or set on a floor tilted by 14 degrees whose low
-friction is declared (sliding below the declared floor); seen by three cameras, one of them a frame ahead of its stamps (a sensor
-effect); or, with E and nu undeclared, thrown down at the floor through air with drag. The
-drag recording also goes through ``mosiv close-loop`` and through the nodes (identify_node's
-``close_loop``). Tolerances and the figures measured are stated in each test.
+friction is declared (sliding below the declared floor); seen by three cameras, one of them a
+frame ahead of its stamps (a sensor effect); or, with E and nu undeclared, thrown down at the
+floor through air with drag. The drag recording also goes through ``mosiv close-loop`` and
+through the nodes (identify_node's ``close_loop``). Tolerances and the figures measured are
+stated in each test.
 """
 
 from __future__ import annotations
