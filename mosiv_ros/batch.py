@@ -108,15 +108,18 @@ def find_items(paths: Iterable[str | Path]) -> list[Item]:
     return list(items.values())
 
 
-def task_resources(config: RunConfig, cluster: dict[str, float]) -> tuple[dict[str, float], str]:
-    """The Ray resources of one recording's task and the device it simulates on."""
+def task_resources(config: RunConfig, cluster: dict[str, float], per_gpu: int = 1) -> tuple[dict[str, float], str]:
+    """The Ray resources of one recording's task and the device it simulates on.
+
+    On CUDA a task asks for ``1 / per_gpu`` of a GPU (``BatchConfig.per_gpu``).
+    """
     device = config.identify.device
     if device == "auto":
         device = "cuda" if cluster.get("GPU", 0) >= 1 else "cpu"
     if device.startswith("cuda"):
         if cluster.get("GPU", 0) < 1:
             raise ValueError(f"device {config.identify.device!r}: the Ray cluster has no GPU")
-        return {"num_gpus": 1, "num_cpus": 1}, "cuda:0"  # Ray makes the task's GPU cuda:0
+        return {"num_gpus": 1 / per_gpu, "num_cpus": 1}, "cuda:0"  # Ray makes the task's GPU cuda:0
     cores = config.identify.cpu_workers or 1
     if cluster.get("CPU", 0) < cores:
         raise ValueError(f"cpu_workers {cores}: the Ray cluster has only {cluster.get('CPU', 0):g} CPU cores")
@@ -127,7 +130,7 @@ def _slots(resources: dict[str, float], cluster: dict[str, float]) -> int:
     """How many tasks of ``resources`` the cluster runs at once (at least 1)."""
     key = "GPU" if resources.get("num_gpus") else "CPU"
     need = resources.get("num_gpus") or resources["num_cpus"]
-    return max(1, int(cluster.get(key, 0) // need))
+    return max(1, int(cluster.get(key, 0) / need + 1e-9))  # 1 / (1/3) is 3, not 2.999...
 
 
 def process(item: Item, folder: Path, config: RunConfig, loop: LoopConfig | None, device: str) -> dict:
@@ -258,7 +261,7 @@ def run_batch(paths: Iterable[str | Path], out: str | Path, config: RunConfig,
         ray.init(num_cpus=batch.cpus or None, include_dashboard=False, log_to_driver=False)
     interrupted = False
     try:
-        resources, device = task_resources(config, ray.cluster_resources())
+        resources, device = task_resources(config, ray.cluster_resources(), batch.per_gpu)
         task = ray.remote(process).options(**resources, max_retries=0)
         running: dict = {}
         clock = TimeLeft()

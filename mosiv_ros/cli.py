@@ -326,7 +326,7 @@ def cmd_batch(args: argparse.Namespace) -> int:
 
     config = run_config(args.params_file, args.device, fit_options(args), holdout=args.holdout,
                         render=not args.no_render)
-    batch = BatchConfig(address=args.address, cpus=args.cpus, close_loop=args.close_loop)
+    batch = BatchConfig(address=args.address, cpus=args.cpus, per_gpu=args.per_gpu, close_loop=args.close_loop)
     shown = ""
 
     def progress(status) -> None:
@@ -512,6 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     settings = {name: (default, text) for name, default, text in describe(BatchConfig)}
     batch.add_argument("--address", default=settings["address"][0], help=settings["address"][1])
     batch.add_argument("--cpus", type=int, default=settings["cpus"][0], help=settings["cpus"][1])
+    batch.add_argument("--per-gpu", type=int, default=settings["per_gpu"][0], help=settings["per_gpu"][1])
     batch.add_argument("--holdout", type=float, default=HOLDOUT,
                        help="fraction of the frames kept out of the fit and scored as future")
     batch.add_argument("--device", default=None, help="'cpu', 'cuda:0' or 'auto' (default: params)")

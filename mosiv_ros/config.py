@@ -271,6 +271,9 @@ class BatchConfig:
         "", "Ray cluster to join (ray.init(address=...)), e.g. 'auto' or 'ray://head:10001'; empty = "
         "a Ray of this machine's own, started for the batch and stopped after it.")
     cpus: int = _param(0, "CPU cores of the Ray started on this machine; 0 = all of them.", 0, 100000)
+    per_gpu: int = _param(
+        1, "Recordings that share one GPU at a time (each asks Ray for 1/per_gpu of one): a fit of a few "
+        "thousand particles leaves most of a GPU idle; a full-size suite scene's peaks at about 9 GB.", 1, 64)
     close_loop: bool = _param(False, "Also close the loop on each recording (mosiv close-loop).")
 
 

@@ -9,7 +9,7 @@ import shutil
 import pytest
 import yaml
 
-from mosiv_ros.batch import SUMMARY, aggregate, find_items, scale_error, task_resources
+from mosiv_ros.batch import SUMMARY, _slots, aggregate, find_items, scale_error, task_resources
 from mosiv_ros.cli import main
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.loop.truth import judge
@@ -57,6 +57,15 @@ def test_a_task_asks_for_one_gpu_on_cuda_else_for_the_cores_its_fit_uses():
     config.identify.device = "cuda:1"
     with pytest.raises(ValueError, match="has no GPU"):
         task_resources(config, {"CPU": 16})
+
+
+def test_recordings_can_share_a_gpu_and_as_many_run_at_once_as_the_shares_fit():
+    config = RunConfig()
+    config.identify.device = "cuda:0"
+    for per_gpu, gpus, running in ((1, 2, 2), (3, 1, 3), (4, 2, 8)):
+        resources, device = task_resources(config, {"CPU": 16, "GPU": gpus}, per_gpu)
+        assert resources == {"num_gpus": 1 / per_gpu, "num_cpus": 1} and device == "cuda:0"
+        assert _slots(resources, {"CPU": 16, "GPU": gpus}) == running
 
 
 def _entry(name, pair, cd, emd, dex=None, outcome=None):
