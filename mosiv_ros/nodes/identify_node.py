@@ -6,8 +6,9 @@ same stamp: the fit's track loss) and ``/mosiv/particles`` (latched). Once it ha
 and ``window`` frames from the particles' frame on (with ``window`` 0: at least two frames and
 ``idle_timeout`` seconds without a new one; with a window that the stream never fills: three
 times that), and, while a node publishes surface tracks, once each of those frames has its tracks
-or the streams were quiet for ``idle_timeout`` seconds (tracks and frame sets travel on two
-topics, so either may arrive first), it runs the core's ``identify_objects`` in a worker thread (an object whose family
+or no track cloud came for ``idle_timeout`` seconds (tracks and frame sets travel on two topics,
+so either may arrive first; a lost track cloud delays the fit by at most three times that), it
+runs the core's ``identify_objects`` in a worker thread (an object whose family
 the scene leaves out gets one of ``families``, chosen by held-out error first), reporting
 progress on ``/diagnostics`` and in its log, then publishes ``/mosiv/material_estimates``
 (diagnostic_msgs/DiagnosticArray, latched: one status per object named ``mosiv/<object>`` with
@@ -90,6 +91,7 @@ class IdentifyNode(Node):
         self.particles: LiftedParticles | None = None
         self.last_frame = time.monotonic()
         self.last_tracks = 0.0
+        self.ready = 0.0  # when the window was first complete (or the stream first quiet)
         self.worker: threading.Thread | None = None
         self.published = False  # estimates of the fit are on /mosiv/material_estimates
         self.create_subscription(
@@ -131,19 +133,22 @@ class IdentifyNode(Node):
         if self.worker is not None or self.particles is None:
             return
         frames = self._window()
-        quiet = time.monotonic() - self.last_frame
-        window = self.config.window
+        now = time.monotonic()
+        window, idle = self.config.window, self.config.idle_timeout
         if window and len(frames) >= window:
-            frames = frames[:window]
-        elif len(frames) < 2 or quiet <= self.config.idle_timeout * (3 if window else 1):
+            frames, short = frames[:window], False
+        elif len(frames) < 2 or now - self.last_frame <= idle * (3 if window else 1):
             return  # with a window: wait for it unless the stream has clearly ended
-        elif window:
+        else:
+            short = bool(window)
+        tracked = sum(f.tracks is not None for f in frames)
+        self.ready = self.ready or now
+        if (tracked < len(frames) and self.count_publishers(TRACKS_TOPIC) and now - self.ready <= 3 * idle
+                and now - max(self.ready, self.last_tracks) <= idle):
+            return  # the window's tracks may still be on their way
+        if short:
             self.get_logger().warning(f"the stream went quiet after {len(frames)} of the {window} "
                                       "frames of the window; fitting those")
-        tracked = sum(f.tracks is not None for f in frames)
-        if tracked < len(frames) and self.count_publishers(TRACKS_TOPIC) \
-                and time.monotonic() - max(self.last_frame, self.last_tracks) <= self.config.idle_timeout:
-            return  # the window's tracks may still be on their way
         self.get_logger().info(f"fitting {len(frames)} frames from stamp {frames[0].stamp_ns} ns "
                                f"({tracked} with surface tracks)")
         self.worker = threading.Thread(target=self._fit, args=(frames,), daemon=True)
