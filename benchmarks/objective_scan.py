@@ -136,9 +136,7 @@ def centroid_errors(identifier: Identifier, u: np.ndarray, velocity: np.ndarray,
     """Centroid RMS error (m) of the rollout at ``u`` on the fitted and the held-out frames."""
     identifier.apply(u, velocity)
     prediction = rollout(identifier, Observations(prepared.frames, prepared.lifted))
-    ground = prepared.recording.scene.ground
-    floor = Floor(*ground.plane()) if ground is not None else None
-    return analyse(prepared.frames, prediction, window, floor).errors()
+    return analyse(prepared.frames, prediction, window, Floor.of(prepared.recording.scene)).errors()
 
 
 def pairs(items: list[str], what: str) -> dict[str, str]:

@@ -34,6 +34,13 @@ G = 9.81
 FRAME_DT = 1 / 30
 
 
+def slope_acceleration(path: np.ndarray, frame_dt: float, settle: float) -> float:
+    """Constant acceleration (m/s^2) fitted to a path along the slope (frames,) after ``settle`` seconds."""
+    t = np.arange(len(path)) * frame_dt
+    keep = t >= settle
+    return float(2.0 * np.polyfit(t[keep], path[keep], 2)[0])
+
+
 def acceleration(diameter: float, dx: float, fraction: float, slope: float, frames: int, device: str) -> float:
     """Fitted acceleration (m/s^2) down the slope of a ball resting on a floor ``fraction`` dx above a node layer."""
     floor = 0.1 + fraction * dx
@@ -47,9 +54,7 @@ def acceleration(diameter: float, dx: float, fraction: float, slope: float, fram
     particles = Particles(x=x, volume=np.full(len(x), volume), object_index=np.zeros(len(x), dtype=int))
     sim = Simulator([ObjectModel("ball", "elastic", {"E": 6e4, "nu": 0.35})], particles, config)
     path = sim.rollout(frames)[:, 0, :, 0].mean(axis=1)
-    t = np.arange(len(path)) * FRAME_DT
-    keep = t >= 0.15
-    return float(2.0 * np.polyfit(t[keep], path[keep], 2)[0])
+    return slope_acceleration(path, FRAME_DT, 0.15)
 
 
 def block(fraction: float, mu: float, device: str) -> tuple[float, float]:
@@ -63,9 +68,7 @@ def block(fraction: float, mu: float, device: str) -> tuple[float, float]:
     particles = Particles(x=x, volume=np.full(len(x), volume), object_index=np.zeros(len(x), dtype=int))
     sim = Simulator([ObjectModel("block", "elastic", {"E": 2e5})], particles, config)
     path = sim.rollout(15)[:, 0, :, 0].mean(axis=1)
-    t = np.arange(len(path)) * 0.02
-    keep = t >= 0.06
-    return float(2.0 * np.polyfit(t[keep], path[keep], 2)[0]), float(path[-1] - path[5])
+    return slope_acceleration(path, 0.02, 0.06), float(path[-1] - path[5])
 
 
 def main() -> None:

@@ -293,7 +293,7 @@ class LoopClosure:
         self.families: list[FamilyChoice] = []
         self.flight: FreeFlight | None = None
         self.round = 0
-        self.floor = Floor(*scene.ground.plane()) if scene.ground is not None else None
+        self.floor = Floor.of(scene)
 
     # --- models ------------------------------------------------------------------------------
 

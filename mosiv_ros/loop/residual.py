@@ -42,6 +42,7 @@ from scipy.optimize import minimize_scalar
 
 from mosiv_ros.identify.losses import silhouette_loss
 from mosiv_ros.identify.observations import View
+from mosiv_ros.io.scene import Scene
 from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
@@ -58,6 +59,11 @@ class Floor:
 
     height: float = 0.0
     normal: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    @classmethod
+    def of(cls, scene: Scene) -> Floor | None:
+        """The floor ``scene`` declares (None: it declares no ground)."""
+        return cls(*scene.ground.plane()) if scene.ground is not None else None
 
     def above(self, x: np.ndarray) -> np.ndarray:
         n = np.asarray(self.normal, dtype=np.float64)
