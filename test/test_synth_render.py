@@ -141,3 +141,38 @@ def test_a_camera_with_a_time_offset_shows_the_scene_later_under_the_same_stamps
         assert np.array_equal(late.frames[k].mask, cam0.frames[k + 1].mask)
         assert np.array_equal(late.frames[k].depth, cam0.frames[k + 1].depth, equal_nan=True)
     assert not np.array_equal(late.frames[0].mask, cam0.frames[0].mask)  # the scene does move
+
+
+def test_balls_that_graze_the_lens_or_lie_beyond_the_image_edge_are_drawn_as_exact_ray_casts():
+    """The renderer's footprints against a ray cast of every pixel through every ball.
+
+    One ball sits just in front of the lens (it covers the whole image: a full-suite ball that
+    flew past a camera made the unclipped footprint run out of memory); one is centred far left
+    of the image but reaches into it; the rest are ordinary.
+    """
+    from mosiv_ros.io.recording import CameraIntrinsics
+    from mosiv_ros.synth.render import Splats, render_view
+
+    w, h, r = 40, 30, 0.02
+    intrinsics = CameraIntrinsics(w, h, [[50.0, 0, 19.5], [0, 50.0, 14.5], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    ordinary = np.column_stack([rng.uniform(-0.3, 0.3, 30), rng.uniform(-0.2, 0.2, 30), rng.uniform(0.5, 1.0, 30)])
+    cases = {"grazing": np.array([[0.01, 0.0, r * (1 + 1e-5)]]), "beyond the edge": np.array([[-0.03, 0.0, 0.03]])}
+    for name, special in cases.items():
+        x = np.vstack([special, ordinary])  # the optical frame is the world frame
+        labels = np.r_[1, np.full(len(ordinary), 2)]
+        splats = Splats(x, labels, np.full((len(x), 3), 200.0), np.tile([0.0, 0.0, -1.0], (len(x), 1)), r)
+        _, mask, depth = render_view(intrinsics, np.eye(4), splats, None)
+        v, u = np.mgrid[0:h, 0:w]
+        d = np.stack([(u.ravel() - 19.5) / 50.0, (v.ravel() - 14.5) / 50.0, np.ones(u.size)], axis=1)
+        a = np.einsum("ij,ij->i", d, d)[:, None]
+        b = d @ x.T
+        disc = b * b - a * (np.einsum("ij,ij->i", x, x) - r * r)[None]
+        s = np.where((disc >= 0) & (b > 0), (b - np.sqrt(np.clip(disc, 0, None))) / a, np.inf)
+        nearest = s.min(axis=1)
+        expected_mask = np.where(np.isfinite(nearest), labels[s.argmin(axis=1)], 0)
+        assert np.array_equal(mask.ravel(), expected_mask), name
+        seen = np.isfinite(nearest)
+        np.testing.assert_allclose(depth.ravel()[seen], nearest[seen], rtol=1e-6, err_msg=name)
+        assert np.all(np.isnan(depth.ravel()[~seen])), name
+        assert (mask.ravel() == 1).sum() > (w * h if name == "grazing" else 20) - 1, name

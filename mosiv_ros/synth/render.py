@@ -132,18 +132,25 @@ def _nearest_balls(
     c = centres[ahead]
     u0 = np.rint(fx * c[:, 0] / c[:, 2] + cx).astype(np.int64)
     v0 = np.rint(fy * c[:, 1] / c[:, 2] + cy).astype(np.int64)
-    # Footprint half-width: the ball's projected radius bound f r / (z - r), plus rounding.
-    half = np.ceil(max(fx, fy) * radius / (c[:, 2] - radius) + 0.5).astype(np.int64)
-    for size in np.unique(half):
-        offsets = np.arange(-size, size + 1)
-        du, dv = (a.ravel() for a in np.meshgrid(offsets, offsets))
-        members = np.flatnonzero(half == size)
+    # Footprint half-width: the ball's projected radius bound f r / (z - r), plus rounding; then
+    # the footprint's part inside the image, grouped by its size. A ball that grazes the lens
+    # (z just above r) covers the whole image: unclipped, its square ran to millions of pixels
+    # a side (a full-suite scene whose ball flew past a camera ran out of memory rendering).
+    half = np.ceil(max(fx, fy) * radius / (c[:, 2] - radius) + 0.5)
+    u_lo, u_hi = np.clip(u0 - half, 0, w), np.clip(u0 + half + 1, 0, w)
+    v_lo, v_hi = np.clip(v0 - half, 0, h), np.clip(v0 + half + 1, 0, h)
+    box = np.stack([u_hi - u_lo, v_hi - v_lo], axis=1).astype(np.int64)
+    seen = np.flatnonzero((box > 0).all(axis=1))
+    sizes, kind = np.unique(box[seen], axis=0, return_inverse=True)
+    kind = kind.ravel()
+    counts = np.bincount(kind, minlength=len(sizes))
+    groups = np.split(seen[np.argsort(kind, kind="stable")], np.cumsum(counts))[:-1]
+    for (width, height), members in zip(sizes, groups, strict=True):
+        du, dv = (a.ravel() for a in np.meshgrid(np.arange(width), np.arange(height)))
         for chunk in np.array_split(members, 1 + len(members) * du.size // _CANDIDATES_PER_BATCH):
-            u = (u0[chunk, None] + du).ravel()
-            v = (v0[chunk, None] + dv).ravel()
+            u = (u_lo[chunk, None].astype(np.int64) + du).ravel()
+            v = (v_lo[chunk, None].astype(np.int64) + dv).ravel()
             ball = np.repeat(chunk, du.size)
-            keep = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-            u, v, ball = u[keep], v[keep], ball[keep]
             d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1)
             centre = c[ball]
             # |s d - centre|^2 = r^2: a s^2 - 2 b s + k = 0, nearest root (b - sqrt(b^2 - a k)) / a
