@@ -193,6 +193,9 @@ def summarise(item: Item, report: dict, loop_report: dict | None, truth: dict | 
         "scores": {part: {key: metrics[part][key] for key in SCORES if key in metrics[part]}
                    for part in PARTS if part in metrics},
     }
+    if report.get("views"):
+        entry["views"] = {name: {"cut": len(v["cut"]), "missing": len(v["missing"])}
+                          for name, v in report["views"].items()}
     if "parameter_errors" in report:
         entry["parameter_errors"] = report["parameter_errors"]
         entry["scale_error_dex"] = scale_error(report["parameter_errors"])
@@ -356,6 +359,12 @@ def markdown(report: dict, plot: str | None) -> str:
             + f", {mm(loop['held_out_before'])} -> {mm(loop['held_out_after'])}")
         lines.append(f"| {entry['recording']} | {entry['pair']} | " + " | ".join(cells)
                      + f" | {dex} | {verdict} | {seconds} |")
+    partial = [(entry["recording"], name, v) for entry in report["per_recording"]
+               for name, v in entry.get("views", {}).items()]
+    if partial:
+        lines += ["", "Objects the views do not show whole (their scores cover only what the cameras show): "
+                  + "; ".join(f"{recording}: {name} cut by an image border in {v['cut']} frames, no geometry "
+                              f"in {v['missing']}" for recording, name, v in partial) + "."]
     if plot:
         lines += ["", f"![{plot}]({plot})"]
     return "\n".join(lines) + "\n"

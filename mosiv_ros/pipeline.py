@@ -20,7 +20,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
-from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise, track_errors
+from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise, track_errors, view_coverage
 from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
 from mosiv_ros.identify.problem import views_of
 from mosiv_ros.identify.run import identify_objects, phase_progress
@@ -104,6 +104,7 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: OutputD
         "estimates": estimates.to_dict(), "metrics": summarise(scores),
         "per_frame": [s.__dict__ for s in scores], "timing": timing, "fit": fit or {},
         "tracks": track_errors(prediction, prepared.tracks, window, prepared.lifted.lattice_volume ** (1 / 3)),
+        "views": view_coverage(prepared.frames, [(o.id, o.name) for o in estimates.objects]),
     }
     if truth is not None:
         report["parameter_errors"] = parameter_errors(estimates, truth)

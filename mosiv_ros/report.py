@@ -3,7 +3,8 @@
 What it is for: turning the dictionary ``pipeline.run`` assembles (estimates, metrics, timing,
 parameter errors against ground truth) into files a person reads: the estimates with their
 standard deviations and status, the candidate families' held-out errors of an object whose
-family was chosen (``identify.family``), the scores on the fitted and the held-out frames, and
+family was chosen (``identify.family``), the scores on the fitted and the held-out frames (and
+the frames where an object is cut by an image border or has no geometry), and
 two plots per object (observed vs predicted centroid path; Chamfer distance over time).
 What it is not for: computing anything (``evaluate``, ``identify``).
 """
@@ -74,6 +75,11 @@ def _markdown(report: dict, plots: list[str]) -> str:
                       f"frame ({tracks['dropped']} off them dropped); the twin's distance to them, median / RMS:"]
         lines += [f"{part} frames {tracks[part]['median'] * 1e3:.2f} / {tracks[part]['rms'] * 1e3:.2f} mm "
                   f"({tracks[part]['count']} track points)." for part in ("observed", "future") if part in tracks]
+    for name, views in (report.get("views") or {}).items():
+        lines += ["", f"Views: {name} is cut by an image border in {len(views['cut'])} of {report['frames']} "
+                      f"frames ({frame_ranges(views['cut']) or 'none'}; {', '.join(views['cameras']) or 'no camera'}) "
+                      f"and has no geometry in {len(views['missing'])} ({frame_ranges(views['missing']) or 'none'}): "
+                      "its scores there cover only what the cameras show."]
     if report.get("truth_effects"):
         lines += ["", "Ground-truth effects: " + ", ".join(
             f"{e.get('type')} ({'declared' if e.get('declared') else 'undeclared'})"
@@ -86,6 +92,17 @@ def _markdown(report: dict, plots: list[str]) -> str:
                       f"{fit['failures']} diverged iterations undone."]
     lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"
+
+
+def frame_ranges(frames: Sequence[int]) -> str:
+    """Frame indices as ranges: [0, 1, 2, 5, 7, 8] -> '0-2, 5, 7-8'."""
+    runs: list[list[int]] = []
+    for k in sorted(frames):
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def _families(objects: list[dict], choices: list[dict]) -> list[str]:

@@ -9,7 +9,17 @@ import shutil
 import pytest
 import yaml
 
-from mosiv_ros.batch import SUMMARY, _slots, aggregate, find_items, scale_error, task_resources
+from mosiv_ros.batch import (
+    SUMMARY,
+    Item,
+    _slots,
+    aggregate,
+    find_items,
+    markdown,
+    scale_error,
+    summarise,
+    task_resources,
+)
 from mosiv_ros.cli import main
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.loop.truth import judge
@@ -92,6 +102,19 @@ def test_the_suite_table_averages_each_score_per_material_pair_and_over_all_fini
     assert table["fluid / fluid"]["scale_error_dex"] is None
     assert table["all"]["recordings"] == 3
     assert table["all"]["cd_future"] == pytest.approx((0.006 + 0.010 + 0.005) / 3)
+
+
+def test_the_suite_report_names_the_objects_the_views_do_not_show_whole(tmp_path):
+    objects = [{"name": "ball", "family": "elastic"}, {"name": "box", "family": "plastic"}]
+    run_report = {"estimates": {"objects": objects},
+                  "metrics": {"observed": {"cd": 0.004}, "future": {"cd": 0.02}}, "frames": 61, "fitted_frames": 43,
+                  "views": {"ball": {"cut": [30, 31, 32], "missing": [33, 34], "cameras": ["cam1"]}}}
+    entry = summarise(Item("throw", tmp_path), run_report, None, None) | {"seconds": {"total": 300.0}}
+    assert entry["views"] == {"ball": {"cut": 3, "missing": 2}}
+    assert "views" not in summarise(Item("rest", tmp_path), {**run_report, "views": {}}, None, None)
+    text = markdown({"recordings": 1, "done": 1, "failed": 0, "interrupted": False,
+                     "per_pair": aggregate([entry]), "per_recording": [entry]}, None)
+    assert "throw: ball cut by an image border in 3 frames, no geometry in 2" in text
 
 
 def test_the_scale_error_is_the_mean_absolute_log10_ratio_of_the_scale_parameters_only():

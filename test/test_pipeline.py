@@ -28,7 +28,7 @@ from mosiv_ros.nodes.outputs import statuses_of
 from mosiv_ros.pipeline import evaluate
 from mosiv_ros.predict.twin import Twin
 from mosiv_ros.prepare import RunConfig, prepare
-from mosiv_ros.report import _markdown
+from mosiv_ros.report import _markdown, frame_ranges
 
 
 @pytest.mark.slow
@@ -132,6 +132,11 @@ def test_a_run_removes_an_older_runs_outputs_instead_of_mixing_with_them(drop_ba
     manifest = yaml.safe_load((out / MANIFEST).read_text())
     assert manifest["run"] == "the newer run"
     assert sorted(manifest["files"]) == ["jelly.png", "report.json", "report.md"]
+
+
+def test_frames_are_listed_as_ranges_in_the_report():
+    assert frame_ranges([7, 0, 1, 2, 5, 8]) == "0-2, 5, 7-8" and frame_ranges([4]) == "4"
+    assert frame_ranges([]) == ""
 
 
 def test_estimates_survive_the_diagnostic_status_round_trip():

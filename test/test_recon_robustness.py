@@ -11,6 +11,7 @@ from recon_scenes import ball_points, sphere_recording, time_of, touching_pair
 from scipy.spatial import cKDTree
 
 from mosiv_ros.config import ReconstructionConfig
+from mosiv_ros.evaluate.twin import view_coverage
 from mosiv_ros.io.bag import read_recording, write_recording
 from mosiv_ros.io.recording import FrameSet
 from mosiv_ros.io.scene import Scene
@@ -81,6 +82,14 @@ def test_an_object_leaving_every_view_is_reported_and_the_others_are_still_publi
         assert 2 in frame.objects
         cloud = frame.to_cloud()
         assert len(cloud.xyz) > 0 and set(np.unique(cloud.object_id).tolist()) == set(frame.objects)
+    # what the run's report says of it: the frames the views do not show it whole in
+    cut = frames[2].cut[1]
+    assert cut and all(f"reaches the image border of {', '.join(cut)};" in w for w in frames[2].warnings
+                       if "reaches the image border" in w)
+    assert view_coverage(frames, [(1, "rocket"), (2, "stays")]) == {
+        "rocket": {"cut": [k for k, f in enumerate(frames) if 1 in f.cut], "missing": [3],
+                   "cameras": sorted({c for f in frames for c in f.cut.get(1, ())})}}
+    assert 1 not in frames[0].cut and 1 not in frames[1].cut and 2 not in frames[2].cut
 
 
 def test_a_declared_ground_keeps_the_objects_shadow_out_of_the_floor():

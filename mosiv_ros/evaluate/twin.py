@@ -150,6 +150,24 @@ def track_errors(prediction: Prediction, tracks: SurfaceTracks, fitted_frames: i
     return out
 
 
+def view_coverage(frames: Sequence[ObservedFrame], objects: Sequence[tuple[int, str]]) -> dict[str, dict]:
+    """Per object (id, name) that the views do not show whole in every frame: which frames.
+
+    ``cut``: the frames (indices into ``frames``) where an image border cuts the object (the
+    ``cameras`` whose border does); ``missing``: the frames without geometry for it (no camera
+    sees it, no voxel fits every view, or the frame set was lost). The scores of those frames
+    cover only what the cameras show.
+    """
+    coverage = {}
+    for object_id, name in objects:
+        cut = [k for k, frame in enumerate(frames) if object_id in frame.cut]
+        missing = [k for k, frame in enumerate(frames) if object_id not in frame.objects]
+        if cut or missing:
+            cameras = sorted({c for frame in frames for c in frame.cut.get(object_id, ())})
+            coverage[name] = {"cut": cut, "missing": missing, "cameras": cameras}
+    return coverage
+
+
 def parameter_errors(estimates: Estimates, truth: dict) -> dict[str, dict[str, dict]]:
     """Per object name, per parameter: estimate, truth and the error measure of its kind.
 

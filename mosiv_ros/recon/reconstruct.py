@@ -21,7 +21,8 @@ the object's surface tracks (``tracks``).
 Problems that degrade a frame (a camera missing from the set, an object no camera sees, an object
 cut by an image border, an object left with no voxel) never raise: they are listed in
 ``ObservedFrame.warnings``, which the caller reports (``iter_reconstruct`` logs them, the node
-sends them to its ROS log).
+sends them to its ROS log); the cameras whose border cuts an object are also in
+``ObservedFrame.cut``, for the run's report.
 """
 
 from __future__ import annotations
@@ -92,6 +93,8 @@ class ObservedFrame:
     seconds: float = 0.0
     tracks: TrackPoints | None = None
     """The surface tracks at this stamp (``recon.tracks``), when a tracker ran."""
+    cut: dict[int, tuple[str, ...]] = field(default_factory=dict)
+    """Per object, the cameras whose image border cuts it (its part beyond is not reconstructed)."""
 
     def silhouette(self, object_id: int, camera: str) -> np.ndarray:
         """(H, W) bool: where ``camera`` sees ``object_id``."""
@@ -211,6 +214,7 @@ class Reconstructor:
         min_views = self.config.min_views or len(views)
         carved: dict[int, np.ndarray] = {}
         seen_by: dict[int, tuple[str, ...]] = {}
+        cut_by: dict[int, tuple[str, ...]] = {}
         for object_id in self._object_ids(views, where, warnings):
             seen_by[object_id] = tuple(v.camera for v in views if object_id in v.ids)
             if not seen_by[object_id]:
@@ -219,6 +223,7 @@ class Reconstructor:
                 continue
             cut = [v.camera for v in views if object_id in v.ids and v.touches_border(object_id)]
             if cut:
+                cut_by[object_id] = tuple(cut)
                 beyond = ("is not reconstructed" if min_views == len(views)
                           else f"is kept only where {min_views} cameras see it")
                 warnings.append(f"{where}: object {self._name(object_id)} reaches the image border "
@@ -251,7 +256,7 @@ class Reconstructor:
         tracks = (self.tracker.update(frame_set.stamp_ns, views, objects)
                   if self.tracker is not None else None)
         return ObservedFrame(frame_set.stamp_ns, objects, {v.camera: v.labels for v in views},
-                             warnings, time.perf_counter() - start, tracks)
+                             warnings, time.perf_counter() - start, tracks, cut_by)
 
     def _object_ids(self, views: list[View], where: str, warnings: list[str]) -> list[int]:
         seen = set().union(*(v.ids for v in views))
