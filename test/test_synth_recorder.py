@@ -249,3 +249,33 @@ def test_gravity_damping_and_linear_drag_reach_the_simulator_and_only_declared_o
     assert recording.scene.effects[0].params == {"g": [1.0, 0.0, -9.76]}
     assert all(frame.depth is None for c in recording.cameras.values() for frame in c.frames)
     assert not any("depth" in topic for topic in list_topics(bag))
+
+
+def test_fitted_views_keep_a_thrown_ball_inside_every_image_in_every_frame(tmp_path):
+    scene = {
+        "name": "throw", "duration": 0.4,
+        "objects": [{"name": "ball", "shape": "sphere", "radius": 0.04, "position": [0.0, 0.0, 0.05],
+                     "velocity": [1.0, 0.3, 0.5], "family": "elastic", "params": {"E": 4.0e4}}],
+        "cameras": {"placement": "hemisphere", "count": 3, "radius": 0.5, "look_at": [0.0, 0.0, 0.04],
+                    "min_elevation": 0.4, "max_elevation": 1.0, "resolution": [48, 36],
+                    "horizontal_fov": 0.8, "fps": FPS},
+        "simulation": {"dx": 0.03, "margin": 0.1},
+    }
+
+    def border_frames(bag):
+        cameras = read_recording(bag).cameras
+        edges = [np.r_[f.mask[0], f.mask[-1], f.mask[:, 0], f.mask[:, -1]] for c in cameras.values() for f in c.frames]
+        return sum(bool(np.any(edge == 1)) for edge in edges), cameras
+
+    fixed, fixed_cameras = border_frames(record_scene(tmp_path, scene, "fixed"))
+    fitted_bag = record_scene(tmp_path, {**scene, "cameras": {**scene["cameras"], "fit_motion": True}}, "fitted")
+    fitted, fitted_cameras = border_frames(fitted_bag)
+    assert fixed > 0 and fitted == 0  # the ball leaves the fixed views, never the fitted ones
+    target = np.array([0.0, 0.0, 0.04])
+    scales = [np.linalg.norm(fitted_cameras[n].T_world_optical[:3, 3] - target)
+              / np.linalg.norm(fixed_cameras[n].T_world_optical[:3, 3] - target) for n in fixed_cameras]
+    assert 1.05 < scales[0] < 4.0 and np.allclose(scales, scales[0])
+    for n in fixed_cameras:  # moved back along their lines of sight
+        assert np.allclose(fitted_cameras[n].T_world_optical[:3, :3], fixed_cameras[n].T_world_optical[:3, :3])
+    truth = read_ground_truth_particles(fitted_bag).positions
+    assert np.allclose(truth, read_ground_truth_particles(tmp_path / "fixed").positions)  # the same motion

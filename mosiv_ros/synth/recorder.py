@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +45,7 @@ from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration,
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
 from mosiv_ros.synth.layout import Layout, lay_out
 from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
-from mosiv_ros.synth.scene_file import SceneSpec, check_recording_size
+from mosiv_ros.synth.scene_file import CameraSpec, SceneSpec, check_recording_size
 
 _LOG = logging.getLogger(__name__)
 
@@ -67,6 +68,10 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     offsets = camera_offsets(spec.effects)
     extra = math.ceil(max([0.0, *offsets.values()]) * spec.cameras.fps)  # frames a late camera needs
     positions, settings = simulate(layout, spec.n_frames + extra, progress)
+    if spec.cameras.fit_motion:
+        ball = SPLAT_RADIUS * spec.simulation.particle_spacing
+        spec = replace(spec, cameras=fit_views(spec.cameras, positions, ball))
+        layout = replace(layout, spec=spec)
     rng = np.random.default_rng(seed)
     cameras = render_cameras(layout, positions, offsets, rng, progress)
     ground, effects = declaration(spec.effects, spec.ground.height)
@@ -93,6 +98,58 @@ def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = 
     write_ground_truth(path, ground_truth_document(layout, settings, seed), particles)
     _LOG.info("recorded %s into %s: %d cameras x %d frames", spec.name, path, len(cameras), len(frames))
     return path
+
+
+FIT_MARGIN_PX = 2.0
+"""Pixels a fitted view keeps free between every particle ball and the image border."""
+FIT_MAX_SCALE = 4.0
+"""Farthest a fitted view moves its cameras: this many times their distance to the target."""
+
+
+def fit_views(cameras: CameraSpec, positions: np.ndarray, radius: float) -> CameraSpec:
+    """``cameras`` moved back from their target until every object stays inside every image.
+
+    Every camera moves along its line of sight (orientation kept), all by the smallest common
+    factor of their distances to the target (to 1 %; at most FIT_MAX_SCALE, with a warning where
+    even that does not suffice) at which every particle's ball of ``radius`` at every frame of
+    ``positions`` (frames, N, 3) projects inside the image with FIT_MARGIN_PX to spare. An
+    object that reaches an image border is carved only where the border does not cut it, so a
+    benchmark whose objects spread or fly would score the part in view only.
+    """
+    points = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    k = cameras.intrinsics
+    focal = max(k.K[0, 0], k.K[1, 1])
+
+    def poses(scale: float) -> list[np.ndarray]:
+        moved = [T.copy() for T in cameras.poses]
+        for T in moved:
+            T[:3, 3] = cameras.target + scale * (T[:3, 3] - cameras.target)
+        return moved
+
+    def inside(scale: float) -> bool:
+        for T in poses(scale):
+            c = (points - T[:3, 3]) @ T[:3, :3]
+            if np.any(c[:, 2] <= radius):
+                return False
+            uv = k.project(c)
+            pad = FIT_MARGIN_PX + focal * radius / (c[:, 2] - radius)
+            if (np.any(uv[:, 0] - pad < 0) or np.any(uv[:, 0] + pad > k.width - 1)
+                    or np.any(uv[:, 1] - pad < 0) or np.any(uv[:, 1] + pad > k.height - 1)):
+                return False
+        return True
+
+    lo, hi = 1.0, FIT_MAX_SCALE
+    if inside(lo):
+        return cameras
+    if not inside(hi):
+        _LOG.warning("fit_motion: the objects leave the views even with the cameras %.0fx as far from "
+                     "look_at; recording at that distance", FIT_MAX_SCALE)
+        lo = hi
+    while hi / lo > 1.01:
+        mid = math.sqrt(lo * hi)
+        lo, hi = (lo, mid) if inside(mid) else (mid, hi)
+    _LOG.info("fit_motion: cameras moved to %.2fx their distance from look_at to keep every object in view", hi)
+    return replace(cameras, poses=poses(hi))
 
 
 WALL_RETRIES = 3

@@ -51,6 +51,9 @@ given in degrees as ``friction_angle_deg``). Unknown keys are errors everywhere:
       min_elevation: 0.3             # hemisphere (rad above look_at's horizontal)
       max_elevation: 1.3             # hemisphere
       look_at: [0, 0, 0.05]          # ring, hemisphere
+      fit_motion: false              # ring, hemisphere: after the simulation, move the cameras
+                                     #   back along their lines of sight until every object
+                                     #   stays inside every image in every frame
       poses:                         # explicit: one entry per camera
         - {name: top, position: [0, 0, 1], look_at: [0, 0, 0]}
       resolution: [96, 72]           # width, height in pixels
@@ -168,6 +171,11 @@ class CameraSpec:
     fps: float
     depth: bool
     placement: str
+    target: np.ndarray | None = None
+    """The point ring and hemisphere cameras look at (None for explicit poses)."""
+    fit_motion: bool = False
+    """Move the cameras back from ``target`` after the simulation until every object stays in
+    every image (``synth.recorder.fit_views``)."""
 
 
 @dataclass
@@ -404,6 +412,7 @@ def _gripper(f: Fields) -> GripperSpec:
 
 def _cameras(f: Fields) -> CameraSpec:
     placement = f.string("placement", choices=PLACEMENTS)
+    target, fit_motion = None, False
     if placement == "explicit":
         names, poses = [], []
         for where, raw in f.items("poses"):
@@ -429,6 +438,7 @@ def _cameras(f: Fields) -> CameraSpec:
             high = f.number("max_elevation", 1.2, lower=low, upper=math.pi / 2)
             poses = rig.hemisphere_poses(count, radius, target, low, high)
         names = [f"cam{i}" for i in range(count)]
+        fit_motion = f.boolean("fit_motion", False)
     width, height_px = (int(v) for v in f.vector("resolution", 2, positive=True))
     if width < 8 or height_px < 8:
         raise SceneError(f.path("resolution"), f"must be at least 8 x 8 pixels, got {width} x {height_px}")
@@ -447,7 +457,7 @@ def _cameras(f: Fields) -> CameraSpec:
         raise SceneError(f.path("resolution"), f"{width} x {height_px} is {width * height_px:.3g} pixels, "
                          f"more than {MAX_IMAGE_PIXELS} per camera image")
     spec = CameraSpec(names, poses, intrinsics, f.number("fps", positive=True), f.boolean("depth", True),
-                      placement)
+                      placement, target, fit_motion)
     f.done(f" for {placement} placement")
     return spec
 

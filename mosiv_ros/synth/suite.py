@@ -6,7 +6,8 @@ drawn from a set of shapes, over every pairing of the four material families, ei
 Material parameters are jittered per scene (seeded) around family defaults, so that a method
 cannot score by predicting the defaults. Sizes: ``tiny`` (CPU, CI: the 10 unordered family
 pairs, small images, a few frames) and ``full`` (GPU: the 16 ordered pairs x both interactions
-x two shape pairs, 6 views, 2 s at 30 fps).
+x two shape pairs, 6 views, 2 s at 30 fps, the cameras moved back after the simulation until
+every object stays in every view: ``cameras.fit_motion``).
 What it is not for: recording (``recorder``) or evaluating (the evaluation code reads each
 bag's ground-truth sidecars).
 
@@ -66,11 +67,12 @@ class SuiteSize:
     duration: float
     dx: float
     scale: float
+    fit_views: bool  # cameras moved back after the simulation until every object stays in view
 
 
 SIZES = {
-    "tiny": SuiteSize(False, False, 1, 2, (48, 36), 10.0, 0.6, 0.03, 1.0),
-    "full": SuiteSize(True, True, 2, 6, (256, 192), 30.0, 2.0, 0.01, 1.0),
+    "tiny": SuiteSize(False, False, 1, 2, (48, 36), 10.0, 0.6, 0.03, 1.0, False),
+    "full": SuiteSize(True, True, 2, 6, (256, 192), 30.0, 2.0, 0.01, 1.0, True),
 }
 
 
@@ -121,7 +123,8 @@ def scene_document(name: str, families: tuple[str, str], shapes: tuple[str, str]
         "ground": {"height": 0.0, "half_size": 0.8},
         "cameras": {"placement": "hemisphere", "count": size.cameras, "radius": 3.2 * reach,
                     "look_at": [0.0, 0.0, hb], "min_elevation": 0.35, "max_elevation": 0.9,
-                    "resolution": list(size.resolution), "horizontal_fov": 0.7, "fps": size.fps},
+                    "resolution": list(size.resolution), "horizontal_fov": 0.7, "fps": size.fps,
+                    "fit_motion": size.fit_views},
         "simulation": {"dx": size.dx, "margin": 0.1},
     }
 
