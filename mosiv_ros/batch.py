@@ -363,11 +363,15 @@ def markdown(report: dict, plot: str | None) -> str:
                for name, v in entry.get("views", {}).items()]
     if partial:
         lines += ["", "Objects the views do not show whole (their scores cover only what the cameras show): "
-                  + "; ".join(f"{recording}: {name} cut by an image border in {v['cut']} frames, no geometry "
-                              f"in {v['missing']}" for recording, name, v in partial) + "."]
+                  + "; ".join(f"{recording}: {name} cut by an image border in {_frames(v['cut'])}, no geometry "
+                              f"in {_frames(v['missing'])}" for recording, name, v in partial) + "."]
     if plot:
         lines += ["", f"![{plot}]({plot})"]
     return "\n".join(lines) + "\n"
+
+
+def _frames(count: int) -> str:
+    return f"{count} frame" if count == 1 else f"{count} frames"
 
 
 def _plot(out: OutputDir, per_pair: dict[str, dict]) -> str | None:
