@@ -108,7 +108,9 @@ def scene_document(name: str, families: tuple[str, str], shapes: tuple[str, str]
     if interaction == "stack":
         pa, va = [0.0, 0.0, 2 * hb + ha + gap], [0.0, 0.0, 0.0]
     else:
-        pa, va = [-(ra + rb + 0.05), 0.0, ha + 0.06], [1.2, 0.0, 0.6]
+        # thrown low at B (its centre about level with B's, rising 2 cm before it arrives), so
+        # that it hits B rather than flies over a low one (a box, a torus)
+        pa, va = [-(ra + rb + 0.05), 0.0, max(ha, hb) + gap + 0.01], [1.2, 0.0, 0.3]
     objects = []
     for label, family, shape, position, velocity, color in (
         ("a", families[0], a, pa, va, COLORS[0]), ("b", families[1], b, [0.0, 0.0, hb + gap], [0.0] * 3, COLORS[1])
