@@ -82,9 +82,13 @@ def main() -> int:
     recorded: list[str] = []
     running: dict[str, tuple[subprocess.Popen, int, float]] = {}
 
-    def log(name: str, kind: str):
-        (out / "logs").mkdir(exist_ok=True)
-        return open(out / "logs" / f"{kind}_{name}.log", "w")  # noqa: SIM115 (the child holds it)
+    (out / "logs").mkdir(exist_ok=True)
+
+    def launch(command: list[str], log: str, gpu: int) -> subprocess.Popen:
+        """``command`` on GPU ``gpu``, its output to ``OUT/logs/<log>.log``."""
+        with open(out / "logs" / f"{log}.log", "w") as file:  # the child keeps its own handle
+            return subprocess.Popen(command, stdout=file, stderr=subprocess.STDOUT,
+                                    env=dict(os.environ, CUDA_VISIBLE_DEVICES=str(gpu)))
 
     while to_record or recording or recorded or running:
         if time.time() - start > args.deadline:
@@ -98,10 +102,8 @@ def main() -> int:
             if (bag / "metadata.yaml").is_file():
                 recorded.append(name)
                 continue
-            env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(len(recording) % gpus))
             command = [sys.executable, "-m", "mosiv_ros.cli", "record", str(out / "scenes" / f"{name}.yaml"), str(bag)]
-            recording[name] = (subprocess.Popen(command, stdout=log(name, "record"), stderr=subprocess.STDOUT,
-                                                env=env), time.time())
+            recording[name] = (launch(command, f"record_{name}", len(recording) % gpus), time.time())
         for name, (process, since) in list(recording.items()):
             if process.poll() is not None:
                 del recording[name]
@@ -111,10 +113,8 @@ def main() -> int:
         while recorded and min(load) < args.per_gpu:
             gpu = load.index(min(load))
             name = recorded.pop(0)
-            env = dict(os.environ, CUDA_VISIBLE_DEVICES=str(gpu))
             command = [sys.executable, "-c", TASK, name, str(out / "bags" / name), str(out), params, device]
-            running[name] = (subprocess.Popen(command, stdout=log(name, "run"), stderr=subprocess.STDOUT, env=env),
-                             gpu, time.time())
+            running[name] = (launch(command, f"run_{name}", gpu), gpu, time.time())
             load[gpu] += 1
         for name, (process, gpu, since) in list(running.items()):
             if process.poll() is not None:

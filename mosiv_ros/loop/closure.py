@@ -501,8 +501,7 @@ class LoopClosure:
         for knob in knobs:
             values = {k.label: k.neutral for k in knobs}
             values[knob.label] = knob.neutral + knob.probe
-            observed = (self.observations(model.effects + [(candidate, values)], ctx)
-                        if candidate.sensor and candidate.reobserve(values, ctx) else None)
+            observed = self.sensed(model, candidate, values, ctx)
             try:  # a physical effect changes the prediction, a sensor effect the observations
                 probe = (self.probe(model, candidate.declare(model.scene, values, ctx), ctx)
                          if observed is None else model.prediction)
@@ -548,9 +547,7 @@ class LoopClosure:
         acting = flight.acts(base)
         for ranked in ranking:
             law = ranked.candidate.force_law(ctx)
-            changes = acting and ranked.candidate.sensor and ranked.candidate.reobserve(ranked.estimate, ctx)
-            corrected = (self.observations(current.effects + [(ranked.candidate, ranked.estimate)], ctx)
-                         if changes else None)
+            corrected = self.sensed(current, ranked.candidate, ranked.estimate, ctx) if acting else None
             if law is None and corrected is not None:  # a sensor effect: does its correction remove it?
                 after = self.free_flight(current, corrected)
                 left = after.fit(base_law) if after.segments else None
@@ -696,6 +693,15 @@ class LoopClosure:
                                self.identify, FitSettings.of(self.identify),
                                problem_options(self.identify, self.views), self.views,
                                self.gripper_poses, phase_progress(self.progress, "family"))
+
+    def sensed(self, model: Model, candidate: Candidate, values: dict[str, float], ctx: Context) -> Observations | None:
+        """The observations a sensor ``candidate`` at ``values`` makes on top of ``model``'s effects.
+
+        None for a physical candidate, or where those values change nothing.
+        """
+        if not (candidate.sensor and candidate.reobserve(values, ctx)):
+            return None
+        return self.observations(model.effects + [(candidate, values)], ctx)
 
     def start(self, current: Model, candidate: Candidate, values: dict[str, float], ctx: Context) -> Observations:
         """The observations a refit of ``current`` with ``candidate`` at ``values`` starts on.

@@ -136,10 +136,10 @@ def _nearest_balls(
     # the footprint's part inside the image, grouped by its size. A ball that grazes the lens
     # (z just above r) covers the whole image: unclipped, its square ran to millions of pixels
     # a side (a full-suite scene whose ball flew past a camera ran out of memory rendering).
-    half = np.ceil(max(fx, fy) * radius / (c[:, 2] - radius) + 0.5)
+    half = np.ceil(max(fx, fy) * radius / (c[:, 2] - radius) + 0.5).astype(np.int64)
     u_lo, u_hi = np.clip(u0 - half, 0, w), np.clip(u0 + half + 1, 0, w)
     v_lo, v_hi = np.clip(v0 - half, 0, h), np.clip(v0 + half + 1, 0, h)
-    box = np.stack([u_hi - u_lo, v_hi - v_lo], axis=1).astype(np.int64)
+    box = np.stack([u_hi - u_lo, v_hi - v_lo], axis=1)
     seen = np.flatnonzero((box > 0).all(axis=1))
     sizes, kind = np.unique(box[seen], axis=0, return_inverse=True)
     kind = kind.ravel()
@@ -148,8 +148,8 @@ def _nearest_balls(
     for (width, height), members in zip(sizes, groups, strict=True):
         du, dv = (a.ravel() for a in np.meshgrid(np.arange(width), np.arange(height)))
         for chunk in np.array_split(members, 1 + len(members) * du.size // _CANDIDATES_PER_BATCH):
-            u = (u_lo[chunk, None].astype(np.int64) + du).ravel()
-            v = (v_lo[chunk, None].astype(np.int64) + dv).ravel()
+            u = (u_lo[chunk, None] + du).ravel()
+            v = (v_lo[chunk, None] + dv).ravel()
             ball = np.repeat(chunk, du.size)
             d = np.stack([(u - cx) / fx, (v - cy) / fy, np.ones(len(u))], axis=1)
             centre = c[ball]
