@@ -19,15 +19,18 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from synth_scenes import record_scene
 
 from mosiv_ros.config import IdentifyConfig, LiftingConfig, from_mapping, updated
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig
-from mosiv_ros.loop.library import Context, FloorTiltCandidate
+from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig, Ranked, Round
+from mosiv_ros.loop.freeflight import field_law
+from mosiv_ros.loop.library import Context, FieldCandidate, FloorTiltCandidate
 from mosiv_ros.loop.observations import Observations, Reobserver
 from mosiv_ros.prepare import RunConfig, prepare
+from mosiv_ros.sim.effects import FIELD_FEATURES
 
 THROW = {
     "name": "throw", "duration": 0.3,
@@ -242,6 +245,40 @@ def _params_file(tmp_path, fast_params):
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
+
+
+@pytest.mark.slow
+def test_an_accepted_field_that_is_a_named_law_is_named_with_the_fields_coefficient(drag_bag):
+    # the drag recording's law written as a field (a = -5 |v| v on the axes the cube moves
+    # along), refitted (no gradient steps, a fast search): the law free flight favours, so the
+    # loop names it drag, held at the field's coefficient, and declares drag in the closed
+    # scene; a field along the position is no named law
+    config = RunConfig(lifting=LIFTING)
+    prepared = prepare(drag_bag, config)
+    closure = LoopClosure(prepared.frames, prepared.lifted, prepared.recording.scene,
+                          updated(FIT, {"curriculum.iterations": 0}), LoopConfig(silhouettes=False),
+                          views_of(prepared.recording), reobserver=Reobserver(prepared.recording, config))
+    current = closure.fit([], None, "declared", "declared")
+    closure.flight = closure.free_flight(current)
+    ctx = closure.context(current)
+    round_ = Round(closure.significance(current))
+    round_.ranking = [closure.rank(c, current, ctx) for c in closure.library if c.applicable(ctx)]
+    assert closure.weigh_flight(round_.ranking, current, ctx)
+    features = [FIELD_FEATURES.index(name) for name in ("|v| vx", "|v| vz", "x")]
+
+    def accepted_field(terms, coefficients):
+        law = field_law(np.zeros(3), terms)
+        candidate = FieldCandidate(terms, np.zeros(3), dict(zip(law.labels, coefficients, strict=True)))
+        ranked = Ranked(candidate, math.nan, dict(candidate.values), accepted=True)
+        ranked.refit = closure.fit([(candidate, candidate.values)], ctx, "field", candidate.name)
+        return ranked
+
+    named = closure.name_field(accepted_field([(features[0], 0), (features[1], 2)], [-5.0, -5.0]), round_, ctx)
+    assert named is not None and named.names == ["drag"]
+    assert named.effects[0][1]["drag.coefficient[jelly]"] == pytest.approx(5.0, rel=0.01)
+    assert [e.name for e in named.scene.effects] == ["drag"]
+    assert named.scene.effects[0].params["coefficient"]["jelly"] == pytest.approx(5.0, rel=0.01)
+    assert closure.name_field(accepted_field([(features[2], 1)], [20.0]), round_, ctx) is None
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ import pytest
 from scipy.stats import chi2
 
 from mosiv_ros.io.scene import Scene
-from mosiv_ros.loop.freeflight import MIN_FRAMES, P_VALUE, free_flight, sparse_field
+from mosiv_ros.loop.freeflight import MIN_FRAMES, P_VALUE, SAME_LAW, as_law, field_law, free_flight, sparse_field
 from mosiv_ros.loop.library import Context, LinearDragCandidate, QuadraticDragCandidate, WindCandidate
 from mosiv_ros.loop.residual import Floor
 from mosiv_ros.recon.reconstruct import ObjectGeometry, ObservedFrame
@@ -135,6 +135,31 @@ def test_a_force_no_named_effect_exerts_is_described_by_a_sparse_field_of_its_ow
     assert slope == pytest.approx(20.0, rel=0.1)
     ballistic = _path([-0.2, 0.0, 0.3], [1.0, 0.0, 1.5], lambda v: np.zeros(3), 12)
     assert sparse_field(_flight(_frames({1: ballistic}), [1])) is None  # no force, no field
+
+
+def test_a_field_whose_terms_are_a_named_law_is_that_law_at_the_fields_coefficient():
+    # over a throw in the x-z plane under linear drag: velocity terms with one coefficient are
+    # linear drag (but for the centroids' noise across the plane, where the field has no term:
+    # 0.3 % apart); a constant sideways term is wind; anisotropic velocity terms (0.49 apart) or
+    # a term along the position (0.88-1.0) are no named law, nor velocity terms drag's (0.22)
+    flight = _flight(_frames({1: _path([-0.2, 0.0, 0.3], [1.0, 0.0, 1.5], lambda v: -1.5 * v, 12)}), [1])
+    ctx = _context([True])
+    linear, quadratic, wind = (c.force_law(ctx) for c in (LinearDragCandidate(), QuadraticDragCandidate(),
+                                                          WindCandidate()))
+    one, x, vx, vz = (FIELD_FEATURES.index(name) for name in ("1", "x", "vx", "vz"))
+
+    def field(terms, coefficients):
+        law = field_law(np.zeros(3), terms)
+        return law, dict(zip(law.labels, coefficients, strict=True))
+
+    values, misfit = as_law(*field([(vx, 0), (vz, 2)], [-1.5, -1.5]), linear, flight)
+    assert misfit < 0.01 and values["linear_drag.coefficient[o0]"] == pytest.approx(1.5, rel=1e-3)
+    assert as_law(*field([(vx, 0), (vz, 2)], [-1.5, -1.5]), quadratic, flight)[1] > SAME_LAW
+    assert as_law(*field([(vx, 0), (vz, 2)], [-1.5, -0.5]), linear, flight)[1] > SAME_LAW
+    values, misfit = as_law(*field([(one, 1)], [1.5]), wind, flight)
+    assert misfit < 1e-9 and values == pytest.approx({"wind.a[0]": 0.0, "wind.a[1]": 1.5})
+    for law in (linear, quadratic, wind):
+        assert as_law(*field([(x, 1)], [20.0]), law, flight)[1] > SAME_LAW
 
 
 @pytest.mark.slow  # 6 sparse regressions, half a minute

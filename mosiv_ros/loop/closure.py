@@ -66,7 +66,8 @@ reported, not attributed to the nearest effect), ``partly explained`` (effects w
 but what is left is still above the noise and nothing explains it), ``unmodelled external
 force`` (free flight shows a force no named effect explains, and a smooth field of few terms
 fitted there, ``try_field``, pays for itself by the same criterion: the force is described,
-not named).
+not named; unless the field is a named law free flight shows, ``name_field``, which is then
+accepted under its name).
 
 What it is for: ``mosiv close-loop`` and identify_node's ``close_loop`` option.
 What it is not for: the report files (``loop.report``).
@@ -102,8 +103,11 @@ from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.loop.freeflight import (
     P_VALUE,
+    SAME_LAW,
+    TIE,
     ForceLaw,
     FreeFlight,
+    as_law,
     combine,
     field_law,
     free_flight,
@@ -640,6 +644,11 @@ class LoopClosure:
             accepted = [r for r in leading if r.accepted]
             if not accepted:
                 field = self.try_field(round_, current, ctx, spread) if round_.flight_force else None
+                named = self.name_field(field, round_, ctx) if field is not None and field.accepted else None
+                if named is not None:  # the field is a named law: its refit stands for that law
+                    round_.accepted = named.effects[-1][0].name
+                    current = named
+                    continue
                 if field is not None and field.accepted:
                     round_.accepted = field.candidate.name
                     current = field.refit
@@ -683,6 +692,43 @@ class LoopClosure:
         self.try_candidate(ranked, current, ctx, spread)
         round_.ranking.append(ranked)
         return ranked
+
+    def name_field(self, field: Ranked, round_: Round, ctx: Context) -> Model | None:
+        """The accepted ``field``'s refit as the named effect whose law it is; None where it is none.
+
+        The named effect whose law free flight favours (the lowest AIC there, every other law's
+        more than ``TIE`` behind) is the field when its law, at the values nearest the field's,
+        exerts the field's acceleration over the fitted frames' states within ``SAME_LAW``
+        (``as_law``: a linear drag's velocity terms with one coefficient are linear drag). Its
+        own refits failed the held-out criterion the field's refit of the same law passed: where
+        refits of one model land that far apart (the second engine's linear drag at the full
+        budget: its held refit x1.72, the field's x0.92) the field's stands for it, held at those
+        values. A field that is a law free flight does not favour stays a field: over a short
+        flight a constant and a drag fit alike, and the constant, the simplest term, is a wind.
+        """
+        laws = [(r.candidate, r.flight.aic) for r in round_.ranking
+                if not isinstance(r.candidate, FieldCandidate) and r.flight is not None
+                and math.isfinite(r.flight.aic) and r.flight.explained >= self.loop.min_explained]
+        if not laws:
+            return None
+        laws.sort(key=lambda law: law[1])
+        candidate = laws[0][0]
+        if len(laws) > 1 and laws[1][1] - laws[0][1] <= TIE:
+            return None
+        values, misfit = as_law(field.candidate.law, field.candidate.values, candidate.force_law(ctx), self.flight)
+        if misfit > SAME_LAW:
+            return None
+        held = HeldCandidate(candidate, values)
+        at = ", ".join(f"{k} = {v:.4g}" for k, v in values.items())
+        field.note += (f"; the field is {candidate.name}'s law ({at}, {misfit:.1%} apart over the fitted "
+                       f"frames' states), the law free flight favours: named {candidate.name}")
+        _LOG.info("the field is %s's law (%s, %.1f%% apart): named %s", candidate.name, at, 100 * misfit,
+                  candidate.name)
+        effects = field.refit.effects[:-1] + [(held, dict(values))]
+        scene = self.scene
+        for effect, effect_values in effects:
+            scene = effect.declare(scene, effect_values, ctx)
+        return replace(field.refit, effects=effects, scene=scene)
 
     def choose_families(self) -> list[FamilyChoice]:
         """The family of every object the scene leaves open, chosen on the fitted frames.

@@ -86,6 +86,9 @@ TIE = 2.0
 (Akaike's criterion cannot tell them apart)."""
 FIELD_BOUND = 1.0e3
 """Bound of a force field coefficient (the simulator's)."""
+SAME_LAW = 0.1
+"""Largest RMS difference between a named law and a field, as a share of the field's RMS
+acceleration over a recording's states, at which the field is that law (``as_law``)."""
 
 Columns = Callable[[int, np.ndarray, np.ndarray], np.ndarray]
 """columns(object index, x (n, 3), v (n, 3)) -> (n, 3, J): acceleration per unit of each knob."""
@@ -392,6 +395,35 @@ def sparse_field(flight: FreeFlight, base: ForceLaw | None = None,
         terms.append(term)
         fit = best
     return (terms, origin, fit) if terms and not flight.acts(fit) else None
+
+
+def as_law(field: ForceLaw, values: dict[str, float], law: ForceLaw,
+           flight: FreeFlight) -> tuple[dict[str, float], float]:
+    """``law``'s knob values nearest the force ``field`` at ``values`` exerts, and how near.
+
+    Compared over the states ``flight``'s frames show (the loop's fitted frames): every
+    object's observed centroid and its velocity (central differences) in every frame where both
+    are known, contact phases too.
+    Returns the values (bounded least squares) and the RMS difference of the two accelerations
+    as a share of the field's RMS: 0 where the field is ``law`` (a linear drag's velocity
+    terms with one coefficient on every axis the objects move along), near 1 where ``law``
+    cannot make it.
+    """
+    velocity = np.gradient(flight.observed, flight.times, axis=0)
+    w = np.array([values[label] for label in field.labels])
+    targets, columns = [], []
+    for k in range(flight.observed.shape[1]):
+        known = np.all(np.isfinite(flight.observed[:, k]) & np.isfinite(velocity[:, k]), axis=1)
+        x, v = flight.observed[known, k], velocity[known, k]
+        targets.append((field.columns(k, x, v) @ w).reshape(-1))
+        columns.append(law.columns(k, x, v).reshape(-1, len(law.labels)))
+    target, A = np.concatenate(targets), np.concatenate(columns)
+    size = float(np.sqrt(np.mean(target ** 2))) if len(target) else 0.0
+    if size == 0.0:
+        return dict.fromkeys(law.labels, 0.0), math.inf
+    theta = lsq_linear(A, target, bounds=(law.lower, law.upper)).x
+    misfit = float(np.sqrt(np.mean((A @ theta - target) ** 2))) / size
+    return dict(zip(law.labels, map(float, theta), strict=True)), misfit
 
 
 def _at_border(view: View, points: np.ndarray, voxel: float) -> bool:
