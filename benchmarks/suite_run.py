@@ -10,9 +10,9 @@ task ``mosiv batch`` runs (``mosiv_ros.batch.process``: ``config/mosiv.yaml``'s 
 ``--params-file``'s, on ``cuda:0``, no 2D scores), ``--per-gpu`` recordings at a time on each GPU
 (``CUDA_VISIBLE_DEVICES``; with ``--device cpu``, that many at a time on the CPU, one core each).
 Each writes ``OUT/<scene>/`` as ``mosiv batch`` does; a scene whose ``summary.json`` exists is
-skipped, so a rerun resumes. Whatever still runs ``--deadline`` seconds after the start is stopped
-(its scene is run again next time). At the end the suite report (``OUT/batch.md``, ``batch.json``,
-``batch.png``) covers every finished scene in OUT.
+skipped, so a rerun resumes; a scene stopped part-way goes on from its fits' checkpoints (in its
+folder). Whatever still runs ``--deadline`` seconds after the start is stopped. At the end the
+suite report (``OUT/batch.md``, ``batch.json``, ``batch.png``) covers every finished scene in OUT.
 """
 
 from __future__ import annotations

@@ -145,17 +145,20 @@ def process(item: Item, folder: Path, config: RunConfig, loop: LoopConfig | None
     if device == "cpu":
         identify.cpu_workers = identify.cpu_workers or 1
     config = replace(config, identify=identify, prediction=replace(config.prediction, device=device))
+    # every fit checkpoints in the recording's own folders: a stopped batch resumes it mid-fit
+    checkpoints = Path(identify.checkpoint_dir) / item.name if identify.checkpoint_dir else folder
     start = time.perf_counter()
     try:
         run_out = OutputDir(folder / RUN_DIR, f"mosiv batch: mosiv run {item.bag}")
         prepared = prepare(item.bag, config)
-        report = run_prepared(prepared, run_out, config).report
+        report = run_prepared(prepared, run_out, _checkpointed(config, checkpoints / RUN_DIR)).report
         seconds = {"run": time.perf_counter() - start}
         loop_report = None
         if loop is not None:
             tick = time.perf_counter()
             loop_out = OutputDir(folder / LOOP_DIR, f"mosiv batch: mosiv close-loop {item.bag}")
-            loop_report = close_loop_prepared(prepared, loop_out, config, loop)
+            loop_report = close_loop_prepared(prepared, loop_out, _checkpointed(config, checkpoints / LOOP_DIR),
+                                              loop)
             seconds["close_loop"] = time.perf_counter() - tick
         truth = read_ground_truth(item.bag) if (item.bag / "ground_truth.yaml").is_file() else None
         entry = summarise(item, report, loop_report, truth)
@@ -170,6 +173,11 @@ def process(item: Item, folder: Path, config: RunConfig, loop: LoopConfig | None
     write_text(folder / SUMMARY, json.dumps(plain(entry, null_nonfinite=True), indent=1))
     (folder / ERROR).unlink(missing_ok=True)
     return entry
+
+
+def _checkpointed(config: RunConfig, folder: Path) -> RunConfig:
+    """``config`` with its fits checkpointing under ``folder/checkpoints``."""
+    return replace(config, identify=replace(config.identify, checkpoint_dir=str(folder / "checkpoints")))
 
 
 def failed(item: Item, folder: Path, error: str, trace: str, seconds: float) -> dict:

@@ -10,12 +10,14 @@ import pytest
 import yaml
 
 from mosiv_ros.batch import (
+    LOG_FILE,
     SUMMARY,
     Item,
     _slots,
     aggregate,
     find_items,
     markdown,
+    process,
     scale_error,
     summarise,
     task_resources,
@@ -225,6 +227,25 @@ def test_a_batch_on_a_local_ray_reports_the_corrupt_recording_finishes_the_rest_
     again = json.loads((out / "batch.json").read_text())
     assert [e for e in again["per_recording"] if e["status"] == "done"] == [
         e for e in report["per_recording"] if e["status"] == "done"]
+
+
+@pytest.mark.slow
+def test_a_recordings_fit_checkpoints_in_its_folder_and_a_rerun_resumes_it_to_the_same_scores(
+        tiny_suite, tiny_params, tmp_path):
+    # a task stopped mid-fit (Ctrl-C, a killed worker, a deadline) goes on from its checkpoint;
+    # here the rerun resumes a finished fit, which ends where it ended
+    from mosiv_ros.cli import run_config
+    from mosiv_ros.config import HOLDOUT
+
+    config = run_config(tiny_params, "cpu", {}, holdout=HOLDOUT, render=False)
+    name = sorted(p.name for p in tiny_suite.iterdir() if p.name != "corrupt")[0]
+    item, folder = Item(name, tiny_suite / name), tmp_path / name
+    first = process(item, folder, config, None, "cpu")
+    assert first["status"] == "done" and any((folder / "run" / "checkpoints").iterdir())
+    assert "resuming identification" not in (folder / LOG_FILE).read_text()
+    again = process(item, folder, config, None, "cpu")
+    assert "resuming identification from " + str(folder / "run" / "checkpoints") in (folder / LOG_FILE).read_text()
+    assert again["scores"] == first["scores"]
 
 
 @pytest.mark.slow
