@@ -10,7 +10,8 @@ against ground truth (``evaluation``).
 
 Per frame set: each object is carved on its own (``carving``); a voxel that two objects' carvings
 both keep (they hide each other, or the masks cannot tell them apart) goes to the object more
-views show there, ties to the object whose own evidence is nearer (its uncontested voxels and
+views show there (first counting, with depth, only the views whose measured surface passes
+through the voxel), ties to the object whose own evidence is nearer (its uncontested voxels and
 depth returns). Surface points are the
 object's depth returns that agree with its volume when the recording has depth, otherwise the
 centres of its boundary voxels. Each surface point has a colour: its pixel's, for a depth return;
@@ -290,8 +291,13 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
               surfaces: Mapping[int, np.ndarray]) -> dict[int, np.ndarray]:
     """Give every voxel kept by several objects to one of them.
 
-    The winner is the claimant that the most views show at the voxel's pixel; among those tied,
-    the one whose own evidence (uncontested voxels, depth returns) is nearest.
+    The winner is the claimant that the most views with depth show at the voxel's pixel where
+    their measured surface passes through the voxel (it lies at most a voxel behind it): a view
+    that sees another object in front of the voxel says nothing of it there, so an object half
+    buried under another keeps what the views from the side show of it. Then, for the voxels
+    no view's surface decides (inside the objects, or no depth), the claimant the most views
+    show at the voxel's pixel; among those tied, the one whose own evidence (uncontested voxels,
+    depth returns) is nearest.
     """
     keys = {i: lattice.linear(v) for i, v in carved.items()}
     all_keys, counts = np.unique(np.concatenate(list(keys.values()) or [np.zeros(0, np.int64)]),
@@ -301,17 +307,24 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
         return dict(carved)
     ids = sorted(carved)
     centres = lattice.centres(np.stack(np.unravel_index(contested, lattice.shape), axis=1))
-    labels = []
+    labels, surface_labels = [], []
     for view in views:
-        row, col, inside = view.pixels(*view.project(centres)[:2])
+        u, v, z = view.project(centres)
+        row, col, inside = view.pixels(u, v)
         labels.append(np.where(inside, view.labels[row, col], 0))
+        if view.depth is not None:
+            with np.errstate(invalid="ignore"):
+                on_surface = inside & (z <= view.depth[row, col] + lattice.voxel_size)
+            surface_labels.append(np.where(on_surface, view.labels[row, col], 0))
     votes = np.full((len(ids), len(contested)), -1)
     distance = np.full((len(ids), len(contested)), np.inf)
     for row, object_id in enumerate(ids):
         claims = np.isin(contested, keys[object_id])
         if not claims.any():
             continue
-        votes[row, claims] = sum((label[claims] == object_id).astype(int) for label in labels)
+        votes[row, claims] = ((len(views) + 1) * sum((label[claims] == object_id).astype(int)
+                                                     for label in surface_labels)
+                              + sum((label[claims] == object_id).astype(int) for label in labels))
         own = carved[object_id][~np.isin(keys[object_id], contested)]
         evidence = np.concatenate([lattice.centres(own), surfaces[object_id]])
         distance[row, claims] = (cKDTree(evidence).query(centres[claims])[0] if len(evidence)
