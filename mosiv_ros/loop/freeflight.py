@@ -403,11 +403,10 @@ def as_law(field: ForceLaw, values: dict[str, float], law: ForceLaw,
 
     Compared over the states ``flight``'s frames show (the loop's fitted frames): every
     object's observed centroid and its velocity (central differences) in every frame where both
-    are known, contact phases too.
-    Returns the values (bounded least squares) and the RMS difference of the two accelerations
-    as a share of the field's RMS: 0 where the field is ``law`` (a linear drag's velocity
-    terms with one coefficient on every axis the objects move along), near 1 where ``law``
-    cannot make it.
+    are known, contact phases too. Returns the values (bounded least squares) and the RMS
+    difference of the two accelerations as a share of the field's RMS: 0 where the field is
+    ``law`` (a linear drag's velocity terms with one coefficient on every axis the objects move
+    along), near 1 where ``law`` cannot make it.
     """
     velocity = np.gradient(flight.observed, flight.times, axis=0)
     w = np.array([values[label] for label in field.labels])
