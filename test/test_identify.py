@@ -490,6 +490,28 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
 
 
 @pytest.mark.slow
+def test_a_fit_stopped_in_its_first_iteration_resumes_after_its_search(tmp_path):
+    # the checkpoint written when the search ends: the rerun searches nothing and ends where an
+    # uninterrupted fit does
+    args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
+    options = {"search.rounds": 1, "curriculum.iterations": 2}
+    problem, settings = _jelly_problem(*args, frames=6, **options, checkpoint_dir=str(tmp_path / "ckpt"))
+    reference = Identifier(*_jelly_problem(*args, frames=6, **options)).run()
+
+    def stop_in_the_first_iteration(record):
+        if record["phase"] == "fit":
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        Identifier(problem, settings, progress=stop_in_the_first_iteration).run()
+    records: list[dict] = []
+    resumed = Identifier(problem, settings, progress=records.append).run()
+    assert resumed.search_s == 0.0 and all(r["phase"] == "fit" for r in records)
+    assert len(records) == len(reference.history)
+    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
+
+
+@pytest.mark.slow
 def test_a_truncated_checkpoint_is_reported_and_the_fit_starts_afresh(tmp_path, caplog):
     problem, settings = _jelly_problem({"E": 2e4}, {"E": 5e3}, frames=5, checkpoint_dir=str(tmp_path),
                                        **{"search.rounds": 1, "curriculum.iterations": 2})

@@ -412,6 +412,7 @@ class Identifier:
             u = self.search.run(velocity)
             search_s = time.perf_counter() - tick
             state = FitState(u, velocity, adam, (u.copy(), velocity.copy()))
+            checkpoint.save(state)  # stopped before its first iteration ends, it resumes here
         state = self.curriculum.run(state, checkpoint.save)
         u, velocity, loss, per = self._final(state)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
