@@ -31,6 +31,7 @@ from mosiv_ros.io.bag import (
 )
 from mosiv_ros.io.errors import BagError
 from mosiv_ros.io.messages import (
+    image_from_msg,
     image_to_msg,
     jazzy_typestore,
     rosbags_types,
@@ -179,6 +180,50 @@ def test_recording_without_depth_round_trips(small_recording, tmp_path):
     path = write_recording(recording, tmp_path / "bag", storage="sqlite3")
     assert "/cam0/depth/image_rect" not in list_topics(path)
     assert_recordings_equal(read_recording(path), recording)
+
+
+def test_bgr_and_alpha_colour_and_millimetre_depth_read_as_rgb_and_metres(small_bag, small_recording, tmp_path):
+    """Cameras' other common encodings (OpenCV's bgr8, alpha, REP 118's 16UC1 depth) read as the
+    pipeline's RGB and metres: colour exactly, depth to the millimetre, 0 mm as no return."""
+    colour = {"/cam0/color/image_raw": "bgr8", "/cam1/color/image_raw": "bgra8"}
+
+    def reencode(topic, msg):
+        if topic in colour or topic.endswith("/depth/image_rect"):
+            stamp = stamp_to_ns(msg.header.stamp)
+        if topic in colour:
+            rgb = image_from_msg(msg)
+            order = rgb[..., ::-1]
+            pixels = np.dstack([order, np.full(rgb.shape[:2], 7, np.uint8)]) if colour[topic] == "bgra8" else order
+            return image_to_msg(TYPES, np.ascontiguousarray(pixels), colour[topic], stamp, msg.header.frame_id)
+        if topic.endswith("/depth/image_rect"):
+            depth = image_from_msg(msg)
+            millimetres = np.where(np.isfinite(depth), np.round(depth * 1000), 0).astype(np.uint16)
+            millimetres[0, :3] = 0  # pixels without a return
+            return image_to_msg(TYPES, millimetres, "16UC1", stamp, msg.header.frame_id)
+        return msg
+
+    back = read_recording(rewrite(small_bag, tmp_path / "bag", reencode))
+    for name, camera in small_recording.cameras.items():
+        for got, want in zip(back.cameras[name].frames, camera.frames, strict=True):
+            np.testing.assert_array_equal(got.rgb, want.rgb)
+            assert got.depth.dtype == np.float32
+            assert np.isnan(got.depth[0, :3]).all()
+            returned = np.isfinite(want.depth)
+            returned[0, :3] = False
+            assert np.array_equal(np.isfinite(got.depth), returned)
+            assert np.abs(got.depth[returned] - want.depth[returned]).max() <= 0.0005 + 1e-6
+
+
+def test_a_colour_image_in_a_depth_encoding_raises_bag_error_naming_the_encodings(small_bag, tmp_path, stamps):
+    def to_depth(msg):
+        depth = np.ones((msg.height, msg.width), np.float32)
+        return image_to_msg(TYPES, depth, "32FC1", stamp_to_ns(msg.header.stamp), "cam0_optical")
+
+    bag = rewrite(small_bag, tmp_path / "bag", at("/cam0/color/image_raw", stamps[1], to_depth))
+    with pytest.raises(BagError) as info:
+        read_recording(bag)
+    assert info.value.topic == "/cam0/color/image_raw"
+    assert f"encoding '32FC1' at stamp {stamps[1]}, expected ('rgb8', 'bgr8', 'rgba8', 'bgra8')" in str(info.value)
 
 
 def test_compressed_mcap_round_trips(small_recording, tmp_path):

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.errors import MessageError
 from mosiv_ros.io.messages import (
+    camera_image_from_msg,
     camera_info_from_msg,
     camera_info_to_msg,
     image_from_msg,
@@ -42,11 +43,11 @@ def types(request):
 
 
 def sample_image(encoding: str, height: int = 5, width: int = 7) -> np.ndarray:
-    if encoding == "rgb8":
-        return RNG.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    if encoding in ("rgb8", "bgr8", "rgba8", "bgra8"):
+        return RNG.integers(0, 256, (height, width, len(encoding) - 1), dtype=np.uint8)
     if encoding == "mono8":
         return RNG.integers(0, 256, (height, width), dtype=np.uint8)
-    if encoding == "mono16":
+    if encoding in ("mono16", "16UC1"):
         return RNG.integers(0, 65536, (height, width), dtype=np.uint16)
     depth = RNG.uniform(0.2, 5.0, (height, width)).astype(np.float32)
     depth[0, 0] = np.nan
@@ -91,12 +92,12 @@ def test_stamp_beyond_int32_seconds_raises_message_error(types):
 # --- Image --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("encoding", ["rgb8", "mono8", "mono16", "32FC1"])
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16", "16UC1", "32FC1"])
 def test_image_round_trips_exactly_in_each_encoding(types, encoding):
     pixels = sample_image(encoding)
     msg = image_to_msg(types, pixels, encoding, STAMP, "cam0_optical")
     assert (msg.height, msg.width, msg.encoding, msg.is_bigendian) == (5, 7, encoding, 0)
-    assert msg.step == 7 * pixels.itemsize * (3 if encoding == "rgb8" else 1)
+    assert msg.step == 7 * pixels.itemsize * (pixels.shape[2] if pixels.ndim == 3 else 1)
     assert stamp_to_ns(msg.header.stamp) == STAMP and msg.header.frame_id == "cam0_optical"
     back = image_from_msg(msg)
     assert back.dtype == pixels.dtype and back.shape == pixels.shape
@@ -146,7 +147,7 @@ def test_uint8_fields_use_the_fast_container_of_each_kind(types):
     assert isinstance(msg.data, expected)
 
 
-@pytest.mark.parametrize("encoding", ["bgr8", "16UC1", "yuv422"])
+@pytest.mark.parametrize("encoding", ["rgb16", "8UC3", "yuv422"])
 def test_unsupported_encoding_raises_message_error_naming_it(types, encoding):
     with pytest.raises(MessageError, match=f"Image.encoding: unsupported '{encoding}'"):
         image_to_msg(types, sample_image("rgb8"), encoding, STAMP, "c")
@@ -154,6 +155,35 @@ def test_unsupported_encoding_raises_message_error_naming_it(types, encoding):
     msg.encoding = encoding
     with pytest.raises(MessageError, match=encoding):
         image_from_msg(msg)
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8"])
+def test_a_camera_colour_image_reads_as_rgb_whatever_its_channel_order(types, encoding):
+    rgb = sample_image("rgb8")
+    stored = {"rgb8": rgb, "bgr8": rgb[..., ::-1], "rgba8": np.dstack([rgb, rgb[..., :1]]),
+              "bgra8": np.dstack([rgb[..., ::-1], rgb[..., :1]])}[encoding]
+    msg = image_to_msg(types, np.ascontiguousarray(stored), encoding, STAMP, "c")
+    back = camera_image_from_msg("rgb", msg)
+    assert back.dtype == np.uint8 and back.flags.c_contiguous
+    np.testing.assert_array_equal(back, rgb)
+
+
+def test_a_millimetre_depth_image_reads_as_metres_with_zero_as_no_return(types):
+    millimetres = np.array([[0, 1, 2500], [65535, 400, 0]], np.uint16)
+    back = camera_image_from_msg("depth", image_to_msg(types, millimetres, "16UC1", STAMP, "c"))
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(np.isnan(back), millimetres == 0)
+    np.testing.assert_allclose(back[millimetres > 0], millimetres[millimetres > 0] / 1000.0, rtol=1e-6)
+    metres = sample_image("32FC1")
+    read = camera_image_from_msg("depth", image_to_msg(types, metres, "32FC1", STAMP, "c"))
+    np.testing.assert_array_equal(read, metres)
+
+
+@pytest.mark.parametrize(("kind", "encoding"), [("rgb", "mono8"), ("mask", "16UC1"), ("depth", "mono16")])
+def test_a_camera_image_in_another_kinds_encoding_raises_message_error_naming_both(types, kind, encoding):
+    msg = image_to_msg(types, sample_image(encoding), encoding, STAMP, "c")
+    with pytest.raises(MessageError, match=f"'{encoding}' for a {kind} image"):
+        camera_image_from_msg(kind, msg)
 
 
 @pytest.mark.parametrize(

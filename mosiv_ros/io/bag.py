@@ -11,8 +11,9 @@ libraries are wrapped here, at the boundary.
 What it is not for: live topics, message conversion (``mosiv_ros.io.messages``), scene schema
 (``mosiv_ros.io.scene``).
 
-Layout, per camera ``<cam>``: ``/<cam>/color/image_raw`` (rgb8), ``/<cam>/color/camera_info``,
-``/<cam>/instance_mask`` (mono8/mono16), optional ``/<cam>/depth/image_rect`` (32FC1); plus
+Layout, per camera ``<cam>``: ``/<cam>/color/image_raw`` (rgb8; bgr8, rgba8, bgra8 read too),
+``/<cam>/color/camera_info``, ``/<cam>/instance_mask`` (mono8/mono16), optional
+``/<cam>/depth/image_rect`` (32FC1 metres; 16UC1 millimetres read too; written: rgb8, 32FC1); plus
 ``/tf_static`` and optional ``/gripper/pose``. Reading rules:
 
 - cameras are discovered from those topic names; other topics are ignored;
@@ -65,9 +66,10 @@ from rosbags.rosbag2 import (
 from mosiv_ros.io.errors import BagError, MessageError, SceneError, not_utf8, shown
 from mosiv_ros.io.mcap import add_chunk_crcs, chunk_crcs
 from mosiv_ros.io.messages import (
+    CAMERA_IMAGE_ENCODINGS,
+    camera_image_from_msg,
     camera_info_from_msg,
     camera_info_to_msg,
-    image_from_msg,
     image_to_msg,
     jazzy_typestore,
     pose_stamped_from_msg,
@@ -103,8 +105,8 @@ _KINDS = {  # topic suffix -> (attribute of CameraTopics, message type)
     "instance_mask": ("mask", IMAGE),
     "depth/image_rect": ("depth", IMAGE),
 }
-_ENCODINGS = {"color": ("rgb8",), "mask": ("mono8", "mono16"), "depth": ("32FC1",)}
 _ASSEMBLER_KINDS = {"color": "rgb", "mask": "mask", "depth": "depth"}
+"""Attribute of CameraTopics -> the image kind of ``CameraFrameAssembler`` and ``CAMERA_IMAGE_ENCODINGS``."""
 
 
 @dataclass(frozen=True)
@@ -325,7 +327,7 @@ class _CameraData:
         self.assembler = CameraFrameAssembler(
             self.name, expect_depth="depth" in self.present, max_pending=sys.maxsize
         )
-        self.stamps = {attribute: set() for attribute in _ENCODINGS}
+        self.stamps = {attribute: set() for attribute in _ASSEMBLER_KINDS}
 
 
 def _discover_cameras(path: Path, topics: Mapping[str, str]) -> dict[str, _CameraData]:
@@ -460,7 +462,8 @@ def _store(decoder: _Decoder, camera: _CameraData, attribute: str, topic: str, m
     if attribute == "camera_info":
         camera.infos.append((stamp, decoder.convert(topic, msg, camera_info_from_msg)))
         return
-    allowed = _ENCODINGS[attribute]
+    kind = _ASSEMBLER_KINDS[attribute]
+    allowed = CAMERA_IMAGE_ENCODINGS[kind]
     if msg.encoding not in allowed:
         raise BagError(
             decoder.path, topic, f"encoding {msg.encoding!r} at stamp {stamp}, expected {allowed}"
@@ -468,11 +471,11 @@ def _store(decoder: _Decoder, camera: _CameraData, attribute: str, topic: str, m
     if stamp in camera.stamps[attribute]:
         raise BagError(decoder.path, topic, f"two messages with stamp {stamp}")
     camera.stamps[attribute].add(stamp)
-    image = decoder.convert(topic, msg, image_from_msg)
+    image = decoder.convert(topic, msg, partial(camera_image_from_msg, kind))
     if attribute == "color":
         camera.frame_ids.add(str(msg.header.frame_id))
     try:
-        frame = camera.assembler.add(_ASSEMBLER_KINDS[attribute], stamp, image)
+        frame = camera.assembler.add(kind, stamp, image)
     except MessageError as exc:
         raise BagError(decoder.path, topic, str(exc)) from exc
     if frame is not None:
@@ -493,7 +496,7 @@ def _assemble(path: Path, data: _CameraData, transforms: StaticTransforms) -> Ca
     topics, name = data.topics, data.name
     color = data.stamps["color"]
     if not color:
-        raise BagError(path, topics.color, f"no rgb8 images for camera {name!r}")
+        raise BagError(path, topics.color, f"no colour images for camera {name!r}")
     if not data.infos:
         raise BagError(path, topics.camera_info, f"no CameraInfo for camera {name!r}")
     for attribute in ("mask", "depth") if "depth" in data.present else ("mask",):

@@ -31,11 +31,22 @@ from mosiv_ros.io.recording import CameraIntrinsics, PointCloud
 
 ENCODINGS: dict[str, tuple[np.dtype, int]] = {
     "rgb8": (np.dtype(np.uint8), 3),
+    "bgr8": (np.dtype(np.uint8), 3),
+    "rgba8": (np.dtype(np.uint8), 4),
+    "bgra8": (np.dtype(np.uint8), 4),
     "mono8": (np.dtype(np.uint8), 1),
     "mono16": (np.dtype(np.uint16), 1),
+    "16UC1": (np.dtype(np.uint16), 1),
     "32FC1": (np.dtype(np.float32), 1),
 }
 """Supported image encodings: name -> (pixel channel dtype, channels)."""
+CAMERA_IMAGE_ENCODINGS: dict[str, tuple[str, ...]] = {
+    "rgb": ("rgb8", "bgr8", "rgba8", "bgra8"),
+    "mask": ("mono8", "mono16"),
+    "depth": ("32FC1", "16UC1"),
+}
+"""Encodings a camera's colour image, instance mask and depth image may come in (depth as in
+REP 118: 32FC1 metres, or 16UC1 millimetres with 0 for no return)."""
 
 POINT_FIELD_DTYPES: dict[int, np.dtype] = {
     1: np.dtype(np.int8),
@@ -179,7 +190,7 @@ def image_to_msg(
     step: int | None = None,
     is_bigendian: bool = False,
 ) -> Any:
-    """sensor_msgs/Image of ``array`` in ``encoding`` (rgb8, mono8, mono16 or 32FC1).
+    """sensor_msgs/Image of ``array`` in ``encoding`` (one of ``ENCODINGS``).
 
     ``step`` (bytes per row, default: no padding) and ``is_bigendian`` choose the layout; the
     array's dtype and shape must match the encoding exactly (no silent casts).
@@ -215,8 +226,10 @@ def image_to_msg(
 def image_from_msg(msg: Any) -> np.ndarray:
     """The pixels of a sensor_msgs/Image as a native-order array owning its memory.
 
-    rgb8 -> (H, W, 3) uint8, mono8 -> (H, W) uint8, mono16 -> (H, W) uint16,
-    32FC1 -> (H, W) float32; row padding (``step``) and ``is_bigendian`` are honoured.
+    As stored, channels in the encoding's order: rgb8 and bgr8 -> (H, W, 3) uint8, rgba8 and
+    bgra8 -> (H, W, 4) uint8, mono8 -> (H, W) uint8, mono16 and 16UC1 -> (H, W) uint16, 32FC1 ->
+    (H, W) float32; row padding (``step``) and ``is_bigendian`` are honoured
+    (``camera_image_from_msg`` makes a camera's images RGB and metres).
     """
     dtype, channels = _encoding(msg.encoding)
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
@@ -233,6 +246,26 @@ def image_from_msg(msg: Any) -> np.ndarray:
     rows = np.ascontiguousarray(data[: step * height].reshape(height, step)[:, :row_bytes])
     pixels = rows.view(dtype.newbyteorder(">" if msg.is_bigendian else "<")).astype(dtype)
     return pixels.reshape((height, width) if channels == 1 else (height, width, channels))
+
+
+def camera_image_from_msg(kind: str, msg: Any) -> np.ndarray:
+    """A camera's ``kind`` image ("rgb", "mask" or "depth") as the pipeline takes it.
+
+    Colour -> (H, W, 3) uint8 RGB (from rgb8, bgr8, rgba8 or bgra8; alpha dropped); mask ->
+    (H, W) uint8 or uint16 ids; depth -> (H, W) float32 metres, NaN = no return (from 32FC1, or
+    16UC1 millimetres whose 0 means no return). MessageError for another encoding.
+    """
+    allowed = CAMERA_IMAGE_ENCODINGS[kind]
+    if msg.encoding not in allowed:
+        raise MessageError(f"Image.encoding: {msg.encoding!r} for a {kind} image, expected one of {allowed}")
+    pixels = image_from_msg(msg)
+    if msg.encoding == "16UC1":
+        return np.where(pixels > 0, pixels.astype(np.float32) * np.float32(1e-3), np.float32(np.nan))
+    if msg.encoding in ("bgr8", "bgra8"):
+        return np.ascontiguousarray(pixels[..., 2::-1])
+    if msg.encoding == "rgba8":
+        return np.ascontiguousarray(pixels[..., :3])
+    return pixels
 
 
 # --- sensor_msgs/CameraInfo --------------------------------------------------------------------

@@ -32,8 +32,8 @@ from tf2_msgs.msg import TFMessage
 from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import (
+    camera_image_from_msg,
     camera_info_from_msg,
-    image_from_msg,
     pointcloud_to_msg,
     rclpy_types,
     stamp_to_ns,
@@ -135,7 +135,7 @@ class ReconstructionNode(Node):
         assembler = self.assemblers
 
         def convert(msg: Image):
-            frame = assembler[camera].add(kind, stamp_to_ns(msg.header.stamp), image_from_msg(msg))
+            frame = assembler[camera].add(kind, stamp_to_ns(msg.header.stamp), camera_image_from_msg(kind, msg))
             return (camera, frame)
 
         return convert
