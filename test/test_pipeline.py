@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import subprocess
@@ -243,6 +244,26 @@ def test_twin_predicts_new_initial_conditions_and_swapped_materials(drop_bag):
     assert np.abs(soft[-1] - twin.predict(0.5).positions[-1]).max() > 0.005
     future = twin.future(0.4, frame_rate=5.0)
     assert future.times[0] == pytest.approx(twin.window_seconds) and np.allclose(np.diff(future.times), 0.2)
+
+
+def test_twin_follows_an_object_past_its_first_domain_instead_of_stopping_at_the_walls(drop_bag, caplog):
+    # frictionless floor, 1.2 m/s along x for 0.8 s: 0.96 m, well past the 0.25 m the first
+    # domain leaves around the object; its walls must not stop it
+    prepared = prepare(drop_bag, RunConfig())
+    estimates = Estimates([ObjectEstimate(1, "jelly", "elastic", {"E": 2e4, "nu": 0.3},
+                                          velocity=[1.2, 0.0, 0.0, 0.0, 0.0, 0.0])],
+                          scene={"ground.friction": 0.0},
+                          stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
+    twin = Twin(prepared.lifted, estimates, prepared.recording.scene, device="cpu")
+    first_width = twin.sim.hi[0] - twin.sim.lo[0]
+    with caplog.at_level(logging.INFO, logger="mosiv_ros.predict.twin"):
+        x = twin.predict(0.8).centroids()[:, 0, 0]
+    assert "widening it to where they went" in caplog.text
+    assert twin.sim.hi[0] - twin.sim.lo[0] > first_width + 0.5
+    assert x[-1] - x[0] == pytest.approx(0.96, rel=0.05)
+    # the wider simulator keeps the identified values
+    assert twin.sim.params.get("ground.friction") == pytest.approx(0.0)
+    assert twin.sim.params.get("E")[0, 0] == pytest.approx(2e4, rel=1e-6)
 
 
 def test_twin_predicts_the_solid_not_the_boundary_band(drop_bag):

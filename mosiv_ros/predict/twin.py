@@ -24,14 +24,15 @@ from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.predict.request import WhatIf
-from mosiv_ros.sim import ObjectModel, SimConfig, Simulator, domain_around
+from mosiv_ros.sim import WALL_RETRIES, ObjectModel, SimConfig, Simulator, domain_around, reaches_walls
 from mosiv_ros.simulation import OFFSET, effects_of, ground_of, to_sim_particles
 
 _LOG = logging.getLogger(__name__)
 
 PREDICTION_MARGIN = 0.25
-"""Metres of free space around the objects' first positions that a prediction may move into
-(the grid grows with it: an empty grid node still costs each substep)."""
+"""Metres of free space around the objects' first positions that a prediction starts with (an
+empty grid node still costs each substep); a rollout whose objects go further is run again on a
+domain around where they went, with twice the margin (``reaches_walls``)."""
 
 
 @dataclass
@@ -97,16 +98,10 @@ class Twin:
         self.objects = [ObjectModel(by_id[i].name, by_id[i].family,
                                     {k: v for k, v in by_id[i].params.items() if k != OFFSET}, id=i)
                         for i in ids]
-        ground = ground_of(scene)
-        spacing = lifted.lattice_volume ** (1 / 3)
-        dx = 2.0 * spacing
-        lo, hi = domain_around(particles.x, dx, margin, floor=ground.height if ground else None)
-        frame_dt = estimates.frame_dt or 1 / 30
-        self.config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=frame_dt, ground=ground,
-                                effects=effects_of(scene, self.objects), device=device)
-        self.sim = Simulator(self.objects, particles, self.config)
-        self.sim.params.update({k: v for k, v in estimates.scene.items() if k in self.sim.params})
+        self.scene, self.device, self.margin = scene, device, margin
         self.particles = particles
+        self.sim = self._simulator(particles.x)
+        self.sim.params.update({k: v for k, v in estimates.scene.items() if k in self.sim.params})
         # what a prediction reports: the solid, not the boundary band (volume ~0, up to the band's
         # width outside the surface) that the simulation carries for the M-PhyGs volumes
         solid = lifted.solid(offsets)
@@ -160,13 +155,42 @@ class Twin:
         whole = self.predict(self.window_seconds + horizon, velocity, request.params, progress)
         return whole.after(0.0, frame_rate)
 
+    def _simulator(self, points: np.ndarray) -> Simulator:
+        """The twin's simulator on a domain ``self.margin`` around ``points`` and the floor."""
+        ground = ground_of(self.scene)
+        dx = 2.0 * self.lifted.lattice_volume ** (1 / 3)
+        lo, hi = domain_around(points, dx, self.margin, floor=ground.height if ground else None)
+        self.config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=self.estimates.frame_dt or 1 / 30,
+                                ground=ground, effects=effects_of(self.scene, self.objects), device=self.device)
+        return Simulator(self.objects, self.particles, self.config)
+
+    def _widen(self, visited: np.ndarray) -> None:
+        """A simulator on a domain around ``visited`` with twice the margin, the parameters kept."""
+        self.margin *= 2
+        wider = self._simulator(np.concatenate([self.particles.x, visited.reshape(-1, 3)]))
+        for name in self.sim.params.specs:
+            wider.params.set(name, self.sim.params.get(name))
+        self.sim = wider
+
     def _rollout(self, seconds: float, velocity: np.ndarray, progress) -> Prediction:
         index = self.particles.object_index
         centre = np.stack([self.particles.x[index == k].mean(axis=0) for k in range(len(self.ids))])
         v = velocity[index, :3] + np.cross(velocity[index, 3:], self.particles.x - centre[index])
-        self.sim.set_initial_velocity(v)
         n_frames = max(1, math.ceil(seconds / self.config.frame_dt - 1e-9))
-        positions = self.sim.rollout(n_frames, progress=progress)[:, 0, self.solid]
+        for attempt in range(WALL_RETRIES + 1):
+            self.sim.set_initial_velocity(v)
+            positions = self.sim.rollout(n_frames, progress=progress)[:, 0]
+            if not reaches_walls(positions, self.sim.lo, self.sim.hi, self.config.dx):
+                break
+            if attempt == WALL_RETRIES:
+                _LOG.warning("prediction: the objects still reach the walls of a domain %s m wide after %d "
+                             "widenings; past there the walls, not the scene, stop them",
+                             np.round(self.sim.hi - self.sim.lo, 2).tolist(), WALL_RETRIES)
+                break
+            _LOG.info("prediction: the objects reached the domain's walls; widening it to where they went "
+                      "and rolling out again")
+            self._widen(positions)
+        positions = positions[:, self.solid]
         return Prediction(self.estimates.stamp_ns, np.arange(n_frames + 1) * self.config.frame_dt,
                           positions.astype(np.float64), index[self.solid], list(self.ids),
                           [o.name for o in self.objects], self.rgb)

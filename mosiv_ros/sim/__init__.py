@@ -22,6 +22,7 @@ from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAMS
 from mosiv_ros.sim.params import ParamSpec
 from mosiv_ros.sim.runtime import resolve_device
 from mosiv_ros.sim.simulator import (
+    WALL_RETRIES,
     Gradients,
     ObjectModel,
     Particles,
@@ -29,11 +30,13 @@ from mosiv_ros.sim.simulator import (
     SimState,
     Simulator,
     domain_around,
+    reaches_walls,
 )
 
 __all__ = [
     "BUILTIN_EFFECTS", "BodyForce", "Collider", "Effect", "FAMILY_PARAMS", "Gradients", "Gravity",
     "Ground", "KelvinVoigtDamping", "LinearDrag", "MATERIAL_PARAMS", "ObjectModel", "ParamSpec",
     "ParameterError", "Particles", "QuadraticDrag", "SimConfig", "SimulationDiverged",
-    "SimulationError", "SimState", "Simulator", "domain_around", "resolve_device",
+    "SimulationError", "SimState", "Simulator", "WALL_RETRIES", "domain_around", "reaches_walls",
+    "resolve_device",
 ]

@@ -132,6 +132,21 @@ def domain_around(points: np.ndarray, dx: float, margin: float = 0.1,
     return np.floor(lo / dx - 1e-9) * dx, np.ceil(hi / dx + 1e-9) * dx
 
 
+WALL_RETRIES = 3
+"""How many times a rollout whose objects reached the domain's walls is widened and run again."""
+
+
+def reaches_walls(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, dx: float) -> bool:
+    """Whether any position of ``x`` (..., 3) came within the wall cells of the domain lo..hi.
+
+    There the domain's walls, which are not part of any scene, would have stopped it: a rollout
+    that reaches them must be run again on a wider domain (``domain_around`` what it visited).
+    """
+    inner = (WALL_CELLS + 1) * dx
+    x = np.asarray(x).reshape(-1, 3)
+    return bool(np.any(x.min(axis=0) < np.asarray(lo) + inner) or np.any(x.max(axis=0) > np.asarray(hi) - inner))
+
+
 @dataclass
 class SimState:
     """Particle state of every batch.

@@ -33,13 +33,15 @@ from mosiv_ros.progress import Progress
 from mosiv_ros.sim import (
     BUILTIN_EFFECTS,
     MATERIAL_PARAMS,
+    WALL_RETRIES,
     ObjectModel,
     Particles,
     SimConfig,
     Simulator,
     domain_around,
+    reaches_walls,
 )
-from mosiv_ros.sim.boundaries import GROUND_PARAMS, WALL_CELLS
+from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.synth.bodies import gripper_points
 from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration, simulator_effects
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
@@ -152,10 +154,6 @@ def fit_views(cameras: CameraSpec, positions: np.ndarray, radius: float) -> Came
     return replace(cameras, poses=poses(hi))
 
 
-WALL_RETRIES = 3
-"""Times the recorder widens a domain whose walls the objects reached, before giving up."""
-
-
 def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """Particle positions (n_frames + 1, N, 3) float32 at the frame times, and the sim settings.
 
@@ -176,9 +174,8 @@ def simulate(layout: Layout, n_frames: int, progress: Progress | None = None) ->
                   n_frames, substeps, dt, len(layout.x), simulator.device)
         report = None if progress is None else (lambda frame: progress("simulate", frame, n_frames, "frame"))
         trajectory = simulator.rollout(n_frames, progress=report)
-        inner = (WALL_CELLS + 1) * sim.dx
         x = trajectory[:, 0]
-        if np.all(x.min(axis=(0, 1)) >= simulator.lo + inner) and np.all(x.max(axis=(0, 1)) <= simulator.hi - inner):
+        if not reaches_walls(x, simulator.lo, simulator.hi, sim.dx):
             break
         if attempt == WALL_RETRIES:
             raise ValueError("simulation: the objects keep reaching the walls of the domain after "
