@@ -251,7 +251,7 @@ class NodeProcess:
 
 
 class Graph:
-    """Node processes started in order, with one params file; stopped in reverse order."""
+    """Node processes with one params file, the replay started last; stopped in reverse order."""
 
     def __init__(
         self,
@@ -282,20 +282,30 @@ class Graph:
         return argv
 
     def start(self) -> Graph:
-        """Start the nodes in order; on any failure or signal on the way, stop those started."""
+        """Start the nodes; on any failure or signal on the way, stop those started.
+
+        The pipeline nodes publish only what they receive, so they start side by side (their
+        imports share the cores); a replay, which publishes of its own accord, starts once they
+        are all ready, so that no node misses its first messages. A node that exits at start-up
+        is left for the caller to see.
+        """
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
         self._catch_signals()
         try:
-            for spec in self.specs:
-                # in order, each once it is ready, so that a node never misses what the one started
-                # before it publishes (a node that exits at start-up is left for the caller to see)
-                node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
-                node.wait_ready(READY_TIMEOUT)
+            for replays in (False, True):
+                started = [self._start(spec) for spec in self.specs
+                           if (spec.executable == REPLAY_NODE) == replays]
+                for node in started:
+                    node.wait_ready(READY_TIMEOUT)
         except BaseException:
             self.stop()
             raise
         return self
+
+    def _start(self, spec: NodeSpec) -> NodeProcess:
+        node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+        return node
 
     def _catch_signals(self) -> None:
         """Make SIGINT, SIGTERM and SIGHUP raise ``Stopped`` while the graph runs (main thread only).
