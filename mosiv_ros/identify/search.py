@@ -126,35 +126,48 @@ class GlobalSearch:
         workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
         if together:  # one time step, the stiffest row's, for every row
             groups = [candidates] if cuda else np.array_split(candidates, workers)
-            sims = [self._batch(len(g), slot) for slot, g in enumerate(groups)]
-            insides = [self._configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
+            sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
+            insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
             substeps = max(sim.time_step()[0] for sim in sims)
             jobs = [partial(self._score, sim, inside, frames, substeps)
                     for sim, inside in zip(sims, insides, strict=True)]
         else:  # each row at its own time step, on the simulator of a free slot
             idle = queue.SimpleQueue()
             for slot in range(workers):
-                idle.put(self._batch(1, slot))
+                idle.put(self.simulator(1, slot))
 
             def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
                 sim = idle.get()
                 try:
-                    return self._score(sim, self._configure(sim, row[None]), frames)
+                    return self._score(sim, self.configure(sim, row[None]), frames)
                 finally:
                     idle.put(sim)
 
             jobs = [partial(one, row) for row in candidates]
+        # the costliest first (a row's cost is its substeps per frame), so that the cores finish
+        # together; the results in the rows' order
+        order = self._costliest_first(candidates) if workers > 1 and not together else range(len(jobs))
         if workers == 1:  # the GPU's one batch, or one core: in this thread, as before the threads
             results = [job() for job in jobs]
         else:
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                results = list(pool.map(lambda job: job(), jobs))
+                done = dict(zip(order, pool.map(lambda i: jobs[i](), order), strict=True))
+            results = [done[i] for i in range(len(jobs))]
         self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
                                strict=True))
         return (np.concatenate([total for total, *_ in results]),
                 np.concatenate([per for _, per, _ in results]))
 
-    def _batch(self, n: int, slot: int = 0) -> Simulator:
+    def _costliest_first(self, candidates: np.ndarray) -> list[int]:
+        """The rows of ``candidates`` by their substeps per frame, the most first (ties in order)."""
+        probe = self.simulator(1)
+        substeps = []
+        for row in candidates:
+            self.configure(probe, row[None])
+            substeps.append(probe.time_step()[0])
+        return sorted(range(len(candidates)), key=lambda i: -substeps[i])
+
+    def simulator(self, n: int, slot: int = 0) -> Simulator:
         """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
         key = (n, slot)
         if key not in self.simulators:
@@ -163,7 +176,7 @@ class GlobalSearch:
                                              n_batch=n)
         return self.simulators[key]
 
-    def _configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
+    def configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
         """Set ``batch`` to the rows ``candidates``; (B, N) which particles are inside the surface.
 
         What no entry sets comes from the identifier's own simulator, as ``Identifier.apply``
@@ -273,7 +286,8 @@ class GlobalSearch:
         return lo, hi
 
     def best(self, current: np.ndarray, candidates: np.ndarray, velocity: np.ndarray,
-             groups: list[list[int]], keep: int = 1) -> list[tuple[np.ndarray, float]]:
+             groups: list[list[int]], keep: int = 1,
+             current_loss: float | None = None) -> list[tuple[np.ndarray, float]]:
         """The ``keep`` best of ``current``, ``candidates`` and their per-object composite.
 
         ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
@@ -281,7 +295,9 @@ class GlobalSearch:
         step of its stiffest row); the contenders (``current``, the composite and the ``keep``
         best candidates) are then compared each at its own time step, as the gradient fit will
         see them (the loss of one parameter set differs by up to 10 % between time steps, more
-        than a search step gains). Best first, as (u, loss); empty if every candidate diverged.
+        than a search step gains); ``current_loss``, where given, is that of ``current`` (a
+        rollout repeats to the bit on the CPU, and scoring each row is independent of the others).
+        Best first, as (u, loss); empty if every candidate diverged.
         """
         s = self.identifier.settings
         total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
@@ -299,8 +315,9 @@ class GlobalSearch:
                 contenders.append(u)
         if len(contenders) == 1:
             return [(current.copy(), float(np.nanmin(total)))]
-        losses = self.batch_object_losses(np.array(contenders), velocity, s.search.frames,
-                                          together=False)[0]
+        known = [] if current_loss is None else [current_loss]
+        losses = np.r_[known, self.batch_object_losses(np.array(contenders[len(known):]), velocity,
+                                                       s.search.frames, together=False)[0]]
         order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
         return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
 
@@ -316,7 +333,8 @@ class GlobalSearch:
         rng = np.random.default_rng(0)
         ranged = np.array([e.name in SEARCH_RANGES for e in fit.entries])
 
-        def round_(centre: np.ndarray, number: int, keep: int) -> list[tuple[np.ndarray, float]]:
+        def round_(centre: np.ndarray, number: int, keep: int,
+                   loss: float | None = None) -> list[tuple[np.ndarray, float]]:
             half = 0.5 * (hi - lo) / 3.0**number
             box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
             box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
@@ -325,7 +343,7 @@ class GlobalSearch:
             # one sample per stratum, strata paired at random across coordinates
             strata = np.stack([rng.permutation(s.search.samples) for _ in centre], axis=1)
             unit = (strata + rng.random(strata.shape)) / s.search.samples
-            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
+            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep, loss)
 
         def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
             fit.report({"phase": "search", "done": done * s.search.samples,
@@ -341,7 +359,7 @@ class GlobalSearch:
             ends = []
             for k, (start, loss) in enumerate(starts):
                 for number in range(1, s.search.rounds + 1):
-                    found = round_(start, number, 1)
+                    found = round_(start, number, 1, loss)
                     if found:
                         start, loss = found[0]
                     searched(1 + k * s.search.rounds + number)
