@@ -137,6 +137,8 @@ class NodeSpec:
 
     executable: str
     parameters: dict[str, Any] = field(default_factory=dict)
+    after: tuple[str, ...] = ()
+    """Nodes that must be ready before this one starts (those whose volatile topics it feeds)."""
 
 
 def graph_nodes(bag: Any, rate: Any, scene: Any,
@@ -149,7 +151,10 @@ def graph_nodes(bag: Any, rate: Any, scene: Any,
     """
     overrides = overrides or {}
     specs = [NodeSpec(name, {"scene": scene, **overrides.get(name, {})}) for name in PIPELINE_NODES]
-    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1}))
+    # the camera topics are volatile: the replay starts once their subscriber is up; the
+    # pipeline's own topics are transient_local, so the other nodes may come up later
+    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1},
+                          after=(PIPELINE_NODES[0],)))
     return specs
 
 
@@ -251,7 +256,7 @@ class NodeProcess:
 
 
 class Graph:
-    """Node processes with one params file, the replay started last; stopped in reverse order."""
+    """Node processes with one params file, started side by side; stopped in reverse order."""
 
     def __init__(
         self,
@@ -284,28 +289,24 @@ class Graph:
     def start(self) -> Graph:
         """Start the nodes; on any failure or signal on the way, stop those started.
 
-        The pipeline nodes publish only what they receive, so they start side by side (their
-        imports share the cores); a replay, which publishes of its own accord, starts once they
-        are all ready, so that no node misses its first messages. A node that exits at start-up
-        is left for the caller to see.
+        They start side by side (their imports share the cores), except that a node starts
+        only once the nodes it names in ``after`` are ready; then every node is waited for. A
+        node that exits at start-up is left for the caller to see.
         """
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
         self._catch_signals()
         try:
-            for replays in (False, True):
-                started = [self._start(spec) for spec in self.specs
-                           if (spec.executable == REPLAY_NODE) == replays]
-                for node in started:
-                    node.wait_ready(READY_TIMEOUT)
+            for spec in sorted(self.specs, key=lambda spec: bool(spec.after)):
+                for name in spec.after:
+                    self.nodes[name].wait_ready(READY_TIMEOUT)
+                self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+            for node in self.nodes.values():
+                node.wait_ready(READY_TIMEOUT)
         except BaseException:
             self.stop()
             raise
         return self
-
-    def _start(self, spec: NodeSpec) -> NodeProcess:
-        node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
-        return node
 
     def _catch_signals(self) -> None:
         """Make SIGINT, SIGTERM and SIGHUP raise ``Stopped`` while the graph runs (main thread only).
