@@ -41,7 +41,7 @@ from mosiv_ros.sim.boundaries import COLLIDER_SHAPES, GROUND_PARAMS, WALL_CELLS,
 from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
-from mosiv_ros.sim.params import Parameters
+from mosiv_ros.sim.params import Parameters, lane_count
 from mosiv_ros.sim.runtime import load_modules, resolve_device
 
 _LOG = logging.getLogger(__name__)
@@ -334,6 +334,8 @@ class _Colliders:
     omega: wp.array | None = None
 
 
+ADJOINT_PARTS = 2
+"""Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
 _UNPACKED = object()
 """What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
 
@@ -479,7 +481,8 @@ class Simulator:
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
-            "n_particles": self.n_particles, "n_objects": self.n_objects, "n_nodes": self.n_nodes,
+            "n_particles": self.n_particles, "part": 0, "parts": 1, "n_objects": self.n_objects,
+            "n_nodes": self.n_nodes,
             "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
             "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
             "family": self.family, "normal_rank": self.normal_rank,
@@ -806,12 +809,15 @@ class Simulator:
                 self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders)
         return tape
 
-    def _frame_adjoint(self, tape: wp.Tape, frame: _FrameTape, adjoint: _State, seed: wp.array) -> None:
+    def _frame_adjoint(self, tape: wp.Tape, frame: _FrameTape, adjoint: _State, seed: wp.array,
+                       helper: ThreadPoolExecutor | None = None) -> None:
         """Carry ``adjoint`` back over the frame that ``tape`` recorded (``_record_frame``).
 
         ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own dL/dx,
         which is in ``seed``) and leaves holding dL/d(state) at its start. Nothing here records
-        on a tape, so another thread may record the next frame meanwhile (``backward``).
+        on a tape, so another thread may record the next frame meanwhile (``backward``). On the
+        CPU, P2G's adjoint runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
+        (``kernels.p2g`` says why it may).
         """
         self.params.zero_replica_grad()
         last = frame.states[-1]
@@ -827,13 +833,25 @@ class Simulator:
                 launch()
                 continue
             kernel, dim, max_blocks, inputs, outputs, device = launch[:6]
-            if self.device == "cpu":
-                self._cpu_adjoint((id(frame), position), kernel, dim, [*inputs, *outputs], tape)
-            else:
+            if self.device != "cpu":
                 wp.launch(kernel, dim, inputs=inputs, outputs=outputs,
                           adj_inputs=[tape.get_adjoint(a) for a in inputs],
                           adj_outputs=[tape.get_adjoint(a) for a in outputs], device=device,
                           adjoint=True, record_tape=False, max_blocks=max_blocks)
+            elif kernel is kernels.p2g and helper is not None:
+                labels = self._labels[kernel]
+                parts = []
+                for part in range(ADJOINT_PARTS):
+                    args = [*inputs, *outputs]
+                    args[labels["part"]], args[labels["parts"]] = part, ADJOINT_PARTS
+                    parts.append(partial(self._cpu_adjoint, (id(frame), position, part), kernel,
+                                         lane_count(dim, part, ADJOINT_PARTS), args, tape))
+                others = [helper.submit(job) for job in parts[1:]]
+                parts[0]()
+                for other in others:
+                    other.result()
+            else:
+                self._cpu_adjoint((id(frame), position), kernel, dim, [*inputs, *outputs], tape)
         for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
 
@@ -1068,14 +1086,14 @@ class Simulator:
             def recorded(index: int) -> wp.Tape:
                 return self._record_frame(prepare(index), n_sub, dt)
 
-            with ThreadPoolExecutor(1) as ahead:
+            with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(ADJOINT_PARTS - 1) as helper:
                 pending = ahead.submit(recorded, n_frames - 1)
                 for index in reversed(range(n_frames)):
                     tape = pending.result()
                     if index > 0:
                         pending = ahead.submit(recorded, index - 1)
                     seeded(index)
-                    self._frame_adjoint(tape, frames[index % 2], adjoint, seed)
+                    self._frame_adjoint(tape, frames[index % 2], adjoint, seed, helper)
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
             params={name: self.params.grad(name) for name in self.params.specs},
