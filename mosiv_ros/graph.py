@@ -137,8 +137,6 @@ class NodeSpec:
 
     executable: str
     parameters: dict[str, Any] = field(default_factory=dict)
-    after: tuple[str, ...] = ()
-    """Nodes that must be ready before this one starts (those whose volatile topics it feeds)."""
 
 
 def graph_nodes(bag: Any, rate: Any, scene: Any,
@@ -151,10 +149,11 @@ def graph_nodes(bag: Any, rate: Any, scene: Any,
     """
     overrides = overrides or {}
     specs = [NodeSpec(name, {"scene": scene, **overrides.get(name, {})}) for name in PIPELINE_NODES]
-    # the camera topics are volatile: the replay starts once their subscriber is up; the
-    # pipeline's own topics are transient_local, so the other nodes may come up later
-    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1},
-                          after=(PIPELINE_NODES[0],)))
+    # the camera topics are volatile: the replay holds its first message until they have a
+    # subscriber (reconstruction_node subscribes once it sees them), as long as a node may take to
+    # start; the pipeline's own topics are transient_local, so a node may come up later
+    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1,
+                                        "wait_timeout": READY_TIMEOUT}))
     return specs
 
 
@@ -289,17 +288,15 @@ class Graph:
     def start(self) -> Graph:
         """Start the nodes; on any failure or signal on the way, stop those started.
 
-        They start side by side (their imports share the cores), except that a node starts
-        only once the nodes it names in ``after`` are ready; then every node is waited for. A
-        node that exits at start-up is left for the caller to see.
+        They start side by side (their imports share the cores), then each is waited for
+        (``graph_nodes`` says why no node misses a message). A node that exits at start-up is
+        left for the caller to see.
         """
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
         self._catch_signals()
         try:
-            for spec in sorted(self.specs, key=lambda spec: bool(spec.after)):
-                for name in spec.after:
-                    self.nodes[name].wait_ready(READY_TIMEOUT)
+            for spec in self.specs:
                 self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
             for node in self.nodes.values():
                 node.wait_ready(READY_TIMEOUT)
