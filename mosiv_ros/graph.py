@@ -1,6 +1,6 @@
 """The mosiv_ros node graph: what it is (``graph_nodes``), and a runner that starts it.
 
-``graph_nodes`` is the one description of the graph: its nodes in start order with the
+``graph_nodes`` is the one description of the graph: its nodes (the pipeline, then the replay) with the
 parameters each gets on top of the params file. ``launch/mosiv.launch.py`` builds its launch
 description from it on a ROS 2 install; ``launch`` is not installable from PyPI, so the command
 line (``mosiv graph``) and the tests start the same nodes with this small runner (``Graph``),
@@ -141,7 +141,7 @@ class NodeSpec:
 
 def graph_nodes(bag: Any, rate: Any, scene: Any,
                 overrides: dict[str, dict[str, Any]] | None = None) -> list[NodeSpec]:
-    """The mosiv graph in start order: the pipeline nodes with ``scene``, then the replay of ``bag``.
+    """The mosiv graph: the pipeline nodes with ``scene``, then the replay of ``bag``.
 
     The replay waits until every image topic has a subscriber and replays at ``rate``;
     ``overrides`` adds parameters by pipeline node. The values may be of any kind a caller passes on:
