@@ -1,6 +1,6 @@
 """The mosiv_ros node graph: what it is (``graph_nodes``), and a runner that starts it.
 
-``graph_nodes`` is the one description of the graph: its nodes in start order with the
+``graph_nodes`` is the one description of the graph: its nodes (the pipeline, then the replay) with the
 parameters each gets on top of the params file. ``launch/mosiv.launch.py`` builds its launch
 description from it on a ROS 2 install; ``launch`` is not installable from PyPI, so the command
 line (``mosiv graph``) and the tests start the same nodes with this small runner (``Graph``),
@@ -141,7 +141,7 @@ class NodeSpec:
 
 def graph_nodes(bag: Any, rate: Any, scene: Any,
                 overrides: dict[str, dict[str, Any]] | None = None) -> list[NodeSpec]:
-    """The mosiv graph in start order: the pipeline nodes with ``scene``, then the replay of ``bag``.
+    """The mosiv graph: the pipeline nodes with ``scene``, then the replay of ``bag``.
 
     The replay waits until every image topic has a subscriber and replays at ``rate``;
     ``overrides`` adds parameters by pipeline node. The values may be of any kind a caller passes on:
@@ -149,7 +149,11 @@ def graph_nodes(bag: Any, rate: Any, scene: Any,
     """
     overrides = overrides or {}
     specs = [NodeSpec(name, {"scene": scene, **overrides.get(name, {})}) for name in PIPELINE_NODES]
-    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1}))
+    # the camera topics are volatile: the replay holds its first message until they have a
+    # subscriber (reconstruction_node subscribes once it sees them), as long as a node may take to
+    # start; the pipeline's own topics are transient_local, so a node may come up later
+    specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1,
+                                        "wait_timeout": READY_TIMEOUT}))
     return specs
 
 
@@ -251,7 +255,7 @@ class NodeProcess:
 
 
 class Graph:
-    """Node processes started in order, with one params file; stopped in reverse order."""
+    """Node processes with one params file, started side by side; stopped in reverse order."""
 
     def __init__(
         self,
@@ -282,15 +286,19 @@ class Graph:
         return argv
 
     def start(self) -> Graph:
-        """Start the nodes in order; on any failure or signal on the way, stop those started."""
+        """Start the nodes; on any failure or signal on the way, stop those started.
+
+        They start side by side (their imports share the cores), then each is waited for
+        (``graph_nodes`` says why no node misses a message). A node that exits at start-up is
+        left for the caller to see.
+        """
         if not self.params_file.is_file():
             raise GraphError(f"params file {self.params_file} does not exist")
         self._catch_signals()
         try:
             for spec in self.specs:
-                # in order, each once it is ready, so that a node never misses what the one started
-                # before it publishes (a node that exits at start-up is left for the caller to see)
-                node = self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+                self.nodes[spec.executable] = NodeProcess(spec, self.argv(spec), self.env, self.sink)
+            for node in self.nodes.values():
                 node.wait_ready(READY_TIMEOUT)
         except BaseException:
             self.stop()

@@ -111,6 +111,35 @@ def test_the_search_keeps_the_candidate_of_lowest_loss_and_samples_the_prior_ran
     assert min(abs(best_E / E - 1) for E in (1.5e4, 2.5e4)) < 1e-9  # one either side of the true 20 kPa
 
 
+def test_a_known_loss_of_the_current_point_ranks_the_contenders_as_scoring_it_again_does():
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=4)
+    search = Identifier(problem, settings).search
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    coordinate = search.identifier.entries[0].coordinate
+    current = np.array([coordinate.to_u(3e4)])
+    candidates = np.array([[coordinate.to_u(E)] for E in (4e3, 1.5e4, 2.5e4, 2e5)])
+    scored = [(u.tolist(), loss) for u, loss in search.best(current, candidates, velocity, [[0]], keep=3)]
+    known = search.batch_losses(current[None], velocity, together=False)[0]
+    assert [(u.tolist(), loss) for u, loss in search.best(current, candidates, velocity, [[0]], keep=3,
+                                                          current_loss=known)] == scored
+
+
+def test_the_fits_end_points_score_side_by_side_as_each_alone_on_the_fits_simulator():
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"], frames=4)
+    identifier = Identifier(problem, settings)
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    points = [(identifier.pack() + shift, velocity + 0.1 * shift) for shift in (0.0, 0.3, -0.2)]
+    alone = []
+    for u, v in points:
+        identifier.apply(u, v)
+        loss, _, _, per = identifier.window_loss(0, 4, None, grad=False)
+        alone.append((loss, per))
+    together = identifier._whole_window(points)
+    assert [(loss, per.tolist()) for loss, per in together] == [(loss, per.tolist()) for loss, per in alone]
+
+
 def test_a_resynchronised_window_starts_on_the_observed_centroid_and_its_velocity():
     problem, settings = _cube_problem({"E": 2e4}, {"E": 5e3}, ["E"], frames=6)
     identifier = Identifier(problem, settings)

@@ -65,7 +65,8 @@ def test_five_nodes_give_a_late_subscriber_latched_estimates_and_future_predicti
     specs = [NodeSpec("reconstruction_node", {"scene": bag}), NodeSpec("lifting_node", {"scene": bag}),
              NodeSpec("identify_node", {"scene": bag, "window": 6, "output_yaml": str(estimates_file)}),
              NodeSpec("prediction_node", {"scene": bag}),
-             NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1})]
+             NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1,
+                                          "wait_timeout": 60.0})]
     with Graph(specs, params_file=fast_params, sink=None) as graph:
         graph.nodes["identify_node"].wait_for_line("identification done", 300)
         graph.nodes["prediction_node"].wait_for_line("predicted", 120)

@@ -18,7 +18,7 @@ from mosiv_ros.sim import (
     SimulationDiverged,
 )
 from mosiv_ros.sim.effects import GridView
-from mosiv_ros.sim.params import param
+from mosiv_ros.sim.params import REPLICAS, lane_count, lane_particle, param
 from mosiv_ros.sim.sampling import box, sphere
 
 
@@ -377,3 +377,27 @@ def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     if DEVICE == "cpu":
         return np.array_equal(a, b)
     return np.allclose(a, b, rtol=1e-4, atol=1e-6 * np.abs(a).max())
+
+
+@wp.kernel
+def _lane_particles(part: int, parts: int, out: wp.array(dtype=int)):
+    out[wp.tid()] = lane_particle(wp.tid(), part, parts)
+
+
+@pytest.mark.parametrize("total", [1, 127, 128, 300, 3121])
+def test_the_parts_of_a_launch_run_every_particle_once_on_replicas_of_their_own(total):
+    # P2G's adjoint runs in parts side by side on the CPU: together they cover every particle
+    # once, each in order, and no two parts add to one replica (particle i's is i % REPLICAS)
+    for parts in (1, 2):
+        runs = []
+        for part in range(parts):
+            out = wp.zeros(lane_count(total, part, parts), dtype=int, device="cpu")
+            wp.launch(_lane_particles, dim=len(out), inputs=[part, parts], outputs=[out], device="cpu")
+            runs.append(out.numpy())
+        assert sorted(np.concatenate(runs).tolist()) == list(range(total))
+        assert all(np.all(np.diff(run) > 0) for run in runs)
+        lanes = [set((run % REPLICAS).tolist()) for run in runs]
+        assert all(not (a & b) for k, a in enumerate(lanes) for b in lanes[k + 1:])
+    out = wp.zeros(total, dtype=int, device="cpu")
+    wp.launch(_lane_particles, dim=total, inputs=[0, 1], outputs=[out], device="cpu")
+    assert out.numpy().tolist() == list(range(total))  # one part: particle t, as before the parts

@@ -40,7 +40,9 @@ import logging
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, fields, replace
+from functools import partial
 
 import numpy as np
 import torch
@@ -304,10 +306,7 @@ class Identifier:
         traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
         self.timing = {"forward_s": time.perf_counter() - tick}
         tick = time.perf_counter()
-        if self.tensor_device is not None:
-            total, dL, per = self._tensor_loss(traj, start, grad)
-        else:
-            total, dL, per = self._frame_losses(traj, start)
+        total, dL, per = self._loss_of(traj, start, self.inside, grad)
         self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:
             return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
@@ -331,17 +330,26 @@ class Identifier:
                 dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
         return total, du, dv, per
 
-    def _frame_losses(self, traj: np.ndarray, start: int) -> tuple[float, np.ndarray, np.ndarray]:
+    def _loss_of(self, traj: np.ndarray, start: int, inside: np.ndarray,
+                 grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """The loss of rollout ``traj`` (frames ``start``.. on), dL/dx like ``traj``, per-object losses.
 
-        On the CPU, frame by frame: Chamfer by KD-tree, the silhouettes in batches of frames, the
-        tracks.
+        ``inside``: which particles are inside the surface (``self.inside`` for ``sim``'s).
+        """
+        if self.tensor_device is not None:
+            return self._tensor_loss(traj, start, inside, grad)
+        return self._frame_losses(traj, start, inside)
+
+    def _frame_losses(self, traj: np.ndarray, start: int,
+                      inside: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """``_loss_of`` on the CPU, frame by frame.
+
+        Chamfer by KD-tree, the silhouettes in batches of frames, the tracks.
         """
         obs, s = self.problem.observations, self.settings
         length = len(traj) - 1
         dL = np.zeros(traj.shape, dtype=np.float64)
         total, per = 0.0, np.zeros(obs.n_objects)
-        inside = self.inside
         for f in range(1, length + 1):
             x = traj[f, 0].astype(np.float64)
             value, g, per_f = geometry_loss(x[inside], self.index[inside], obs.points[start + f],
@@ -365,14 +373,15 @@ class Identifier:
                 per += s.loss.track_weight * per_f
         return total / length, dL / length, per / length
 
-    def _tensor_loss(self, traj: np.ndarray, start: int, grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    def _tensor_loss(self, traj: np.ndarray, start: int, inside: np.ndarray,
+                     grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
         """``_frame_losses`` as tensors on ``tensor_device``, dL/dx by autograd (zeros without ``grad``)."""
         obs, loss, device = self.problem.observations, self.settings.loss, self.tensor_device
         length = len(traj) - 1
         dL = np.zeros(traj.shape, dtype=np.float64)
         with torch_threads(device), torch.set_grad_enabled(grad):
             x = torch.tensor(traj[None, 1:, 0], dtype=torch.float64, device=device, requires_grad=grad)
-            terms = tensor_terms(x, torch.as_tensor(self.inside[None], device=device), self.index,
+            terms = tensor_terms(x, torch.as_tensor(inside[None], device=device), self.index,
                                  obs.tensors(device), obs.object_ids, slice(start + 1, start + length + 1),
                                  loss, self.settings.splat_radius)
             total = (loss.chamfer_weight * terms.chamfer_total.sum() + loss.silhouette_weight
@@ -428,22 +437,19 @@ class Identifier:
         whole window, and nothing has simulated it yet, so it may diverge (a point that does
         loses to the others rather than ending the fit).
         """
-        n = self.problem.observations.n_frames - 1
         iterated = bool(state.history)
         candidates = {"Adam's last step": (state.u, state.velocity)}
         if iterated:
             candidates["the search's result"] = state.start
         points = {}
-        for label, (point_u, point_velocity) in candidates.items():
-            self.apply(point_u, point_velocity)
-            try:
-                loss, _, _, per = self.window_loss(0, n, None, grad=False)
-            except SimulationDiverged as error:
+        for (label, (point_u, point_velocity)), scored in zip(
+                candidates.items(), self._whole_window(list(candidates.values())), strict=True):
+            if isinstance(scored, SimulationDiverged):
                 if not iterated:
-                    raise
-                _LOG.warning("%s diverged over the whole window (%s)", label, error)
+                    raise scored
+                _LOG.warning("%s diverged over the whole window (%s)", label, scored)
                 continue
-            points[label] = (loss, point_u, point_velocity, per)
+            points[label] = (scored[0], point_u, point_velocity, scored[1])
         if iterated:
             points["the best whole-window iterate"] = state.best  # its loss is known
         label = min(points, key=lambda key: points[key][0])
@@ -454,6 +460,44 @@ class Identifier:
             _LOG.info("keeping %s (loss %.3g) over the gradient fit's end", label, loss)
         self.apply(u, velocity)
         return u, velocity, loss, per
+
+    def _whole_window(self, points: list[tuple[np.ndarray, np.ndarray]]) -> list:
+        """Each (u, velocity)'s whole-window loss and per-object losses, or what stopped its rollout.
+
+        The values ``window_loss`` gives, or the ``SimulationDiverged``. The first point rolls
+        out on ``sim``; on the CPU the others roll out beside it, each on a simulator of the
+        search's set up from ``sim`` as its rows are (a rollout repeats to the bit, whichever
+        simulator runs it).
+        """
+        n = self.problem.observations.n_frames - 1
+        cpu = self.sim.device == "cpu"
+
+        def scored(sim: Simulator, inside: np.ndarray) -> tuple[float, np.ndarray] | SimulationDiverged:
+            try:
+                traj = sim.rollout(n)
+            except SimulationDiverged as error:
+                return error
+            total, _, per = self._loss_of(traj, 0, inside, grad=False)
+            return total, per
+
+        if not cpu:  # one point after the other on ``sim``
+            results = []
+            for u, velocity in points:
+                self.apply(u, velocity)
+                results.append(scored(self.sim, self.inside))
+            return results
+        for f in range(1, n + 1):  # built once, before threads share them
+            self.problem.observations.trees(f)
+        jobs = []
+        for slot, (u, velocity) in reversed(list(enumerate(points))):  # ``sim``'s point set up last
+            self.apply(u, velocity)
+            if slot == 0:
+                jobs.append(partial(scored, self.sim, self.inside))
+            else:
+                batch = self.search.simulator(1, slot)
+                jobs.append(partial(scored, batch, self.search.configure(batch, u[None])[0]))
+        with ThreadPoolExecutor(max_workers=len(jobs)) as pool:
+            return list(pool.map(lambda job: job(), reversed(jobs)))
 
     def project(self, u: np.ndarray) -> np.ndarray:
         """The coordinates moved back inside their ranges (projected Adam).

@@ -24,7 +24,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
-from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
+from mosiv_ros.identify.estimates import (
+    ERROR,
+    Estimates,
+    ObjectEstimate,
+    coordinate_std,
+    curvature_rollouts,
+    estimates_of,
+)
 from mosiv_ros.identify.family import (
     FamilyChoice,
     candidate_families,
@@ -99,7 +106,7 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
     result = identifier.run()
     std = None
     if config.uncertainty:
-        rollouts = 1 + 2 * len(result.u)  # the end point and a step either way along each coordinate
+        rollouts = curvature_rollouts(len(result.u))
         identifier.report({"phase": "uncertainty", "done": 0, "total": rollouts})
         std = coordinate_std(identifier, result)
         identifier.report({"phase": "uncertainty", "done": rollouts, "total": rollouts})

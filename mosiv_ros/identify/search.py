@@ -109,13 +109,63 @@ class GlobalSearch:
 
         The shares are NaN with the scene-level (ablation) loss, which does not split by object.
         """
+        cuda = self.identifier.sim.device.startswith("cuda")
+        if together is None:
+            together = cuda
+        frames, workers = self._set_up(candidates[0], velocity, frames, len(candidates))
+        if together:  # one time step, the stiffest row's, for every row
+            jobs = self._batches(np.array_split(candidates, workers), frames)
+        else:  # each row at its own time step, on the simulator of a free slot
+            idle = queue.SimpleQueue()
+            for slot in range(workers):
+                idle.put(self.simulator(1, slot))
+
+            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+                sim = idle.get()
+                try:
+                    return self._score(sim, self.configure(sim, row[None]), frames)
+                finally:
+                    idle.put(sim)
+
+            jobs = [partial(one, row) for row in candidates]
+        # the costliest first (a row's cost is its substeps per frame), so that the cores finish
+        # together; the results in the rows' order
+        order = self._costliest_first(candidates) if workers > 1 and not together else range(len(jobs))
+        results = self._run_jobs(jobs, workers, order)
+        return (np.concatenate([total for total, *_ in results]),
+                np.concatenate([per for _, per, _ in results]))
+
+    def curvature_losses(self, u: np.ndarray, h: float, velocity: np.ndarray,
+                         frames: int | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+        """The loss at ``u``, at u + h e_j and along the linearised response at u - h e_j.
+
+        For each coordinate j (the uncertainty's curvature, ``identify.estimates``). u and the
+        points u + h e_j roll out in one batch at one time step (each slice of it on the CPU,
+        with u's row at its head); the loss at u - h e_j is that of the positions
+        2 x(u) - x(u + h e_j), the response x(u + t e_j) ~ x(u) + t (x(u + h e_j) - x(u)) / h
+        at t = -h, with the particles inside the surface at u - h e_j: no rollout. Over frames
+        1..``frames`` (default all); NaN where a rollout diverged.
+        """
+        frames, workers = self._set_up(u, velocity, frames, len(u))
+        steps = h * np.eye(len(u))
+        slices = np.array_split(np.arange(len(u)), workers)
+        below = self.inside_of(u - steps)
+        results = self._run_jobs(self._batches([np.vstack([u[None], u + steps[s]]) for s in slices],
+                                               frames, [below[s] for s in slices]), workers)
+        up = np.concatenate([total[1:1 + len(s)] for (total, *_), s in zip(results, slices, strict=True)])
+        down = np.concatenate([total[1 + len(s):] for (total, *_), s in zip(results, slices, strict=True)])
+        return float(results[0][0][0]), up, down
+
+    def _set_up(self, first: np.ndarray, velocity: np.ndarray, frames: int | None,
+                rows: int) -> tuple[int, int]:
+        """Set the identifier up for a batch whose first row is ``first``: (frames, workers).
+
+        The frames scored (``frames``, default all) and how many simulators run side by side.
+        """
         fit = self.identifier
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
-        cuda = fit.sim.device.startswith("cuda")
-        if together is None:
-            together = cuda
-        fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
+        fit.apply(first, velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
             obs.tensors(fit.tensor_device)
         else:
@@ -123,38 +173,45 @@ class GlobalSearch:
                 obs.trees(f)
         # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
         # slices of a batch) run side by side on every core, with the same results as in turn.
-        workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
-        if together:  # one time step, the stiffest row's, for every row
-            groups = [candidates] if cuda else np.array_split(candidates, workers)
-            sims = [self._batch(len(g), slot) for slot, g in enumerate(groups)]
-            insides = [self._configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
-            substeps = max(sim.time_step()[0] for sim in sims)
-            jobs = [partial(self._score, sim, inside, frames, substeps)
-                    for sim, inside in zip(sims, insides, strict=True)]
-        else:  # each row at its own time step, on the simulator of a free slot
-            idle = queue.SimpleQueue()
-            for slot in range(workers):
-                idle.put(self._batch(1, slot))
+        if fit.sim.device.startswith("cuda"):
+            return frames, 1
+        return frames, max(1, min(rows, fit.settings.cpu_workers or os.cpu_count() or 1))
 
-            def one(row: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
-                sim = idle.get()
-                try:
-                    return self._score(sim, self._configure(sim, row[None]), frames)
-                finally:
-                    idle.put(sim)
+    def _batches(self, groups: list[np.ndarray], frames: int,
+                 mirrored: list[np.ndarray] | None = None) -> list:
+        """Jobs that roll each group of rows out in one batch, at the stiffest row's time step.
 
-            jobs = [partial(one, row) for row in candidates]
+        ``mirrored``: per group, the inside masks of the mirror images that ``_score`` adds.
+        """
+        sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
+        insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
+        substeps = max(sim.time_step()[0] for sim in sims)
+        return [partial(self._score, sim, inside, frames, substeps, None if mirrored is None else mirrored[k])
+                for k, (sim, inside) in enumerate(zip(sims, insides, strict=True))]
+
+    def _run_jobs(self, jobs: list, workers: int, order=None) -> list:
+        """The jobs' results in order, run on ``workers`` threads (in ``order``, default theirs)."""
         if workers == 1:  # the GPU's one batch, or one core: in this thread, as before the threads
             results = [job() for job in jobs]
         else:
+            order = range(len(jobs)) if order is None else order
             with ThreadPoolExecutor(max_workers=workers) as pool:
-                results = list(pool.map(lambda job: job(), jobs))
+                done = dict(zip(order, pool.map(lambda i: jobs[i](), order), strict=True))
+            results = [done[i] for i in range(len(jobs))]
         self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
                                strict=True))
-        return (np.concatenate([total for total, *_ in results]),
-                np.concatenate([per for _, per, _ in results]))
+        return results
 
-    def _batch(self, n: int, slot: int = 0) -> Simulator:
+    def _costliest_first(self, candidates: np.ndarray) -> list[int]:
+        """The rows of ``candidates`` by their substeps per frame, the most first (ties in order)."""
+        probe = self.simulator(1)
+        substeps = []
+        for row in candidates:
+            self.configure(probe, row[None])
+            substeps.append(probe.time_step()[0])
+        return sorted(range(len(candidates)), key=lambda i: -substeps[i])
+
+    def simulator(self, n: int, slot: int = 0) -> Simulator:
         """The kept simulator of ``n`` batched rows for worker ``slot`` (made on first use)."""
         key = (n, slot)
         if key not in self.simulators:
@@ -163,7 +220,7 @@ class GlobalSearch:
                                              n_batch=n)
         return self.simulators[key]
 
-    def _configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
+    def configure(self, batch: Simulator, candidates: np.ndarray) -> np.ndarray:
         """Set ``batch`` to the rows ``candidates``; (B, N) which particles are inside the surface.
 
         What no entry sets comes from the identifier's own simulator, as ``Identifier.apply``
@@ -172,28 +229,44 @@ class GlobalSearch:
         fit = self.identifier
         n = len(candidates)
         batch.set_initial_velocity(fit.sim.initial_velocity()[0])
-        offsets = np.repeat(fit.offsets[None], n, axis=0)
-        for name in dict.fromkeys(e.name for e in fit.entries):
-            values = offsets if name == OFFSET else np.repeat(fit.sim.params.get(name), n, axis=0)
+        for name in dict.fromkeys(e.name for e in fit.entries if e.name != OFFSET):
+            values = np.repeat(fit.sim.params.get(name), n, axis=0)
             for i, entry in enumerate(fit.entries):
                 if entry.name == name:
                     values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
-            if name != OFFSET:
-                batch.params.set(name, values)
+            batch.params.set(name, values)
+        boundary = fit.problem.boundary
+        if boundary is not None:
+            batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in self._offsets(candidates)]))
+        return self.inside_of(candidates)
+
+    def inside_of(self, candidates: np.ndarray) -> np.ndarray:
+        """(B, N): which particles are inside the surface at each row of ``candidates``."""
+        fit = self.identifier
         boundary = fit.problem.boundary
         if boundary is None:
-            return np.ones((n, len(fit.index)), dtype=bool)
-        batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in offsets]))
-        return np.stack([boundary.inside(o[fit.index]) for o in offsets])
+            return np.ones((len(candidates), len(fit.index)), dtype=bool)
+        return np.stack([boundary.inside(o[fit.index]) for o in self._offsets(candidates)])
 
-    def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
-               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    def _offsets(self, candidates: np.ndarray) -> np.ndarray:
+        """(B, K): the boundary offsets of each row (the identifier's where no entry sets one)."""
+        fit = self.identifier
+        offsets = np.repeat(fit.offsets[None], len(candidates), axis=0)
+        for i, entry in enumerate(fit.entries):
+            if entry.name == OFFSET:
+                offsets[:, entry.index[1]] = entry.coordinate.to_theta(candidates[:, i])
+        return offsets
+
+    def _score(self, batch: Simulator, inside: np.ndarray, frames: int, substeps: int | None = None,
+               mirrored: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
         """Roll the configured ``batch`` out over ``frames`` frames and score each row.
 
-        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
+        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds. With
+        ``mirrored`` (inside masks, one per row after the first), the mirror image 2 x_0 - x_b
+        of each such row b about the first is scored too, after the rows.
         """
         obs = self.identifier.problem.observations
-        n = batch.n_batch
+        n = batch.n_batch + (0 if mirrored is None else len(mirrored))
         tick = time.perf_counter()
         try:
             traj = batch.rollout(frames, substeps=substeps)
@@ -201,6 +274,9 @@ class GlobalSearch:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
         rolled = time.perf_counter()
+        if mirrored is not None:
+            traj = np.concatenate([traj, 2 * traj[:, :1].astype(np.float64) - traj[:, 1:]], axis=1)
+            inside = np.concatenate([inside, mirrored])
         if self.identifier.tensor_device is not None:
             total, per = self._tensor_scores(traj, inside, frames)
         else:
@@ -273,7 +349,8 @@ class GlobalSearch:
         return lo, hi
 
     def best(self, current: np.ndarray, candidates: np.ndarray, velocity: np.ndarray,
-             groups: list[list[int]], keep: int = 1) -> list[tuple[np.ndarray, float]]:
+             groups: list[list[int]], keep: int = 1,
+             current_loss: float | None = None) -> list[tuple[np.ndarray, float]]:
         """The ``keep`` best of ``current``, ``candidates`` and their per-object composite.
 
         ``groups[k]``: the coordinates (columns) object k's loss chooses. The candidates are
@@ -281,7 +358,9 @@ class GlobalSearch:
         step of its stiffest row); the contenders (``current``, the composite and the ``keep``
         best candidates) are then compared each at its own time step, as the gradient fit will
         see them (the loss of one parameter set differs by up to 10 % between time steps, more
-        than a search step gains). Best first, as (u, loss); empty if every candidate diverged.
+        than a search step gains); ``current_loss``, where given, is that of ``current`` (a
+        rollout repeats to the bit on the CPU, and scoring each row is independent of the others).
+        Best first, as (u, loss); empty if every candidate diverged.
         """
         s = self.identifier.settings
         total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
@@ -299,8 +378,9 @@ class GlobalSearch:
                 contenders.append(u)
         if len(contenders) == 1:
             return [(current.copy(), float(np.nanmin(total)))]
-        losses = self.batch_object_losses(np.array(contenders), velocity, s.search.frames,
-                                          together=False)[0]
+        known = [] if current_loss is None else [current_loss]
+        losses = np.r_[known, self.batch_object_losses(np.array(contenders[len(known):]), velocity,
+                                                       s.search.frames, together=False)[0]]
         order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
         return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
 
@@ -316,7 +396,8 @@ class GlobalSearch:
         rng = np.random.default_rng(0)
         ranged = np.array([e.name in SEARCH_RANGES for e in fit.entries])
 
-        def round_(centre: np.ndarray, number: int, keep: int) -> list[tuple[np.ndarray, float]]:
+        def round_(centre: np.ndarray, number: int, keep: int,
+                   loss: float | None = None) -> list[tuple[np.ndarray, float]]:
             half = 0.5 * (hi - lo) / 3.0**number
             box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
             box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
@@ -325,7 +406,7 @@ class GlobalSearch:
             # one sample per stratum, strata paired at random across coordinates
             strata = np.stack([rng.permutation(s.search.samples) for _ in centre], axis=1)
             unit = (strata + rng.random(strata.shape)) / s.search.samples
-            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep)
+            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep, loss)
 
         def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
             fit.report({"phase": "search", "done": done * s.search.samples,
@@ -341,7 +422,7 @@ class GlobalSearch:
             ends = []
             for k, (start, loss) in enumerate(starts):
                 for number in range(1, s.search.rounds + 1):
-                    found = round_(start, number, 1)
+                    found = round_(start, number, 1, loss)
                     if found:
                         start, loss = found[0]
                     searched(1 + k * s.search.rounds + number)

@@ -45,7 +45,7 @@ import warp as wp
 
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
-from mosiv_ros.sim.params import param
+from mosiv_ros.sim.params import lane_particle, param
 from mosiv_ros.sim.warp_reduce import gather, run_start, scatter
 
 MAX_COLLIDERS = 2
@@ -119,6 +119,8 @@ def p2g(
     viscosity: wp.array(dtype=float),
     density: wp.array(dtype=float),
     n_particles: int,
+    part: int,
+    parts: int,
     n_objects: int,
     n_nodes: int,
     dims: wp.vec3i,
@@ -129,8 +131,13 @@ def p2g(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
 ):
-    """Deformation update, return mapping, stress, and scatter of mass and momentum."""
-    i = wp.tid()
+    """Deformation update, return mapping, stress, and scatter of mass and momentum.
+
+    The forward pass runs as one part (``parts`` = 1). The adjoint writes each particle's own
+    gradients and its replica of each parameter's, so on the CPU it runs in parts side by side
+    (``params.lane_particle``).
+    """
+    i = lane_particle(wp.tid(), part, parts)
     batch = i // n_particles
     k = obj[i - batch * n_particles]
     q = batch * n_objects + k

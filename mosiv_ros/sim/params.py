@@ -37,6 +37,25 @@ def param(values: wp.array(dtype=float), index: int, tid: int):
     return values[index * _REPLICAS + tid % _REPLICAS]
 
 
+@wp.func
+def lane_particle(t: int, part: int, parts: int):
+    """The particle that thread ``t`` of part ``part`` of ``parts`` of a launch runs.
+
+    Particle i reads (and in the adjoint adds to) replica i % REPLICAS of every parameter, so
+    parts that each take their own REPLICAS / ``parts`` replicas, every particle of them in
+    order, add to disjoint gradients in the order one launch adds: they may run side by side
+    to the same sums, to the bit. One part (``parts`` = 1) runs particle t.
+    """
+    lanes = _REPLICAS // parts
+    return (t // lanes) * _REPLICAS + part * lanes + t % lanes
+
+
+def lane_count(total: int, part: int, parts: int) -> int:
+    """How many of ``total`` particles part ``part`` of ``parts`` runs (``lane_particle``)."""
+    lanes = REPLICAS // parts
+    return total // REPLICAS * lanes + min(max(total % REPLICAS - part * lanes, 0), lanes)
+
+
 @wp.kernel
 def _replicate(values: wp.array(dtype=float), out: wp.array(dtype=float)):
     i = wp.tid()

@@ -29,6 +29,7 @@ import gc
 import logging
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -40,7 +41,7 @@ from mosiv_ros.sim.boundaries import COLLIDER_SHAPES, GROUND_PARAMS, WALL_CELLS,
 from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
-from mosiv_ros.sim.params import Parameters
+from mosiv_ros.sim.params import Parameters, lane_count
 from mosiv_ros.sim.runtime import load_modules, resolve_device
 
 _LOG = logging.getLogger(__name__)
@@ -348,6 +349,24 @@ class _Colliders:
     omega: wp.array | None = None
 
 
+ADJOINT_PARTS = 2
+"""Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
+_UNPACKED = object()
+"""What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
+
+
+@dataclass
+class _FrameTape:
+    """The buffers of one frame recomputed on a tape.
+
+    A state per substep boundary, a grid per substep, and the colliders' poses over the frame.
+    """
+
+    states: list[_State]
+    grids: list[_Grid]
+    colliders: _Colliders
+
+
 def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object]) -> list:
     """The arguments of ``kernel``, each found by its parameter's name.
 
@@ -477,7 +496,8 @@ class Simulator:
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
-            "n_particles": self.n_particles, "n_objects": self.n_objects, "n_nodes": self.n_nodes,
+            "n_particles": self.n_particles, "part": 0, "parts": 1, "n_objects": self.n_objects,
+            "n_nodes": self.n_nodes,
             "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
             "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
             "family": self.family, "normal_rank": self.normal_rank,
@@ -488,11 +508,12 @@ class Simulator:
         self._record: dict | None = None
         self._final: _State | None = None
         self._buffers: tuple[list[_State], _Grid] | None = None
-        self._tape_buffers: tuple[list[_State], list[_Grid], _State, wp.array] | None = None
+        self._tape_buffers: tuple[list[_FrameTape], _State, wp.array] | None = None
         self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
         self._graphs: dict[tuple, wp.context.Graph] = {}
         self._seen: set[tuple] = set()
         self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
+        self._adjoint_commands: dict[tuple, tuple[wp.Kernel, object, list, list]] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
 
     # --- set-up and checks ----------------------------------------------------------------
@@ -583,18 +604,25 @@ class Simulator:
         self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
-        """Fill the collider pose arrays (one row per substep and collider) for one frame."""
-        colliders = self.config.colliders
-        rows = n_sub * len(colliders) if colliders else 1
+        """Fill the collider pose arrays of the rollouts for one frame (``_pose_colliders``)."""
+        rows = n_sub * len(self.config.colliders) or 1
         if rows != self._collider_rows:
-            d = self.device
-            self._colliders = replace(
-                self._colliders, pos=wp.zeros(rows, dtype=wp.vec3, device=d),
-                rot=wp.zeros(rows, dtype=wp.quat, device=d),
-                vel=wp.zeros(rows, dtype=wp.vec3, device=d),
-                omega=wp.zeros(rows, dtype=wp.vec3, device=d))
+            self._colliders = self._collider_arrays(n_sub)
             self._collider_rows = rows
             self._forget_graphs()
+        self._pose_colliders(self._colliders, frame, n_sub, dt)
+
+    def _collider_arrays(self, n_sub: int) -> _Colliders:
+        """The colliders with pose arrays of their own for a frame of ``n_sub`` substeps."""
+        rows, d = n_sub * len(self.config.colliders) or 1, self.device
+        return replace(self._colliders, pos=wp.zeros(rows, dtype=wp.vec3, device=d),
+                       rot=wp.zeros(rows, dtype=wp.quat, device=d),
+                       vel=wp.zeros(rows, dtype=wp.vec3, device=d),
+                       omega=wp.zeros(rows, dtype=wp.vec3, device=d))
+
+    def _pose_colliders(self, target: _Colliders, frame: int, n_sub: int, dt: float) -> None:
+        """Fill ``target``'s pose arrays (one row per substep and collider) for one frame."""
+        colliders = self.config.colliders
         if not colliders:
             return
         t0 = frame * self.config.frame_dt
@@ -607,10 +635,10 @@ class Simulator:
                 t = t0 + s * dt
                 pos[s, c], rot[s, c] = collider.pose(t)
                 vel[s, c], omega[s, c] = collider.velocity(t)
-        self._colliders.pos.assign(pos.reshape(-1, 3))
-        self._colliders.rot.assign(rot.reshape(-1, 4))
-        self._colliders.vel.assign(vel.reshape(-1, 3))
-        self._colliders.omega.assign(omega.reshape(-1, 3))
+        target.pos.assign(pos.reshape(-1, 3))
+        target.rot.assign(rot.reshape(-1, 4))
+        target.vel.assign(vel.reshape(-1, 3))
+        target.omega.assign(omega.reshape(-1, 3))
 
     def set_initial_velocity(self, v: np.ndarray) -> None:
         """Initial particle velocities, (N, 3) for every batch or (B, N, 3)."""
@@ -717,10 +745,12 @@ class Simulator:
         if tape is not None:
             tape.record_launch(kernel, dim, 0, args, [], self.device)
 
-    def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float) -> None:
+    def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float,
+                 colliders: _Colliders | None = None) -> None:
         """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
 
-        ``row`` is the substep's index in its frame (which collider poses apply).
+        ``row`` is the substep's index in its frame (which of the poses of ``colliders``, by
+        default the rollouts', apply).
         """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
@@ -741,7 +771,7 @@ class Simulator:
         if K > 1:
             self._run(kernels.node_mass, n_box, grid=grid, **box)
             self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt)
-        self._run(kernels.grid_update, n_box, grid=grid, collider=self._colliders, substep=row,
+        self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
                   **box, dt=dt)
         self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt)
 
@@ -776,33 +806,93 @@ class Simulator:
             self._substep(states[current], states[1 - current], grid, s, dt)
             current = 1 - current
 
-    def _frame_backward(self, states: list[_State], grids: list[_Grid], adjoint: _State,
-                        seed: wp.array, n_sub: int, dt: float) -> None:
-        """Recompute one frame from ``states[0]`` on a tape and carry ``adjoint`` back over it.
+    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> wp.Tape:
+        """Recompute one frame from ``frame.states[0]`` on a tape, its gradients cleared first.
 
-        ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own
-        dL/dx, which is in ``seed``) and leaves holding dL/d(state) at its start.
+        The gradients are cleared before the recomputation moves the grids' boxes
+        (``_Grid.zero_grad`` clears the box of the substep that last ran on a grid, where the
+        adjoint of that substep wrote).
         """
-        for state in states:
+        for state in frame.states:
             state.zero_grad()
-        for grid in grids:
+        for grid in frame.grids:
             grid.zero_grad()
-        self.params.zero_replica_grad()
         tape = wp.Tape()
         with tape:
             self.params.replicate()
             for s in range(n_sub):
-                self._substep(states[s], states[s + 1], grids[s], s, dt)
-        last = states[n_sub]
-        B, N = self.n_batch, self.n_particles
-        wp.launch(_add_vec3, dim=B * N, inputs=[adjoint.x, seed], outputs=[last.x.grad],
-                  device=self.device)
+                self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders)
+        return tape
+
+    def _frame_adjoint(self, tape: wp.Tape, frame: _FrameTape, adjoint: _State, seed: wp.array,
+                       helper: ThreadPoolExecutor | None = None) -> None:
+        """Carry ``adjoint`` back over the frame that ``tape`` recorded (``_record_frame``).
+
+        ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own dL/dx,
+        which is in ``seed``) and leaves holding dL/d(state) at its start. Nothing here records
+        on a tape, so another thread may record the next frame meanwhile (``backward``). On the
+        CPU, P2G's adjoint runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
+        (``kernels.p2g`` says why it may).
+        """
+        self.params.zero_replica_grad()
+        last = frame.states[-1]
+        wp.launch(_add_vec3, dim=self.n_batch * self.n_particles, inputs=[adjoint.x, seed],
+                  outputs=[last.x.grad], device=self.device, record_tape=False)
         wp.copy(last.v.grad, adjoint.v)
         wp.copy(last.C.grad, adjoint.C)
         wp.copy(last.b.grad, adjoint.b)
-        tape.backward()
-        for dst, src in zip(adjoint.arrays, states[0].arrays, strict=True):
+        # tape.backward() less its recording: its adjoint launches would land on a tape that
+        # another thread records
+        for position, launch in enumerate(reversed(tape.launches)):
+            if callable(launch):
+                launch()
+                continue
+            kernel, dim, max_blocks, inputs, outputs, device = launch[:6]
+            if self.device != "cpu":
+                wp.launch(kernel, dim, inputs=inputs, outputs=outputs,
+                          adj_inputs=[tape.get_adjoint(a) for a in inputs],
+                          adj_outputs=[tape.get_adjoint(a) for a in outputs], device=device,
+                          adjoint=True, record_tape=False, max_blocks=max_blocks)
+            elif kernel is kernels.p2g and helper is not None:
+                labels = self._labels[kernel]
+                parts = []
+                for part in range(ADJOINT_PARTS):
+                    args = [*inputs, *outputs]
+                    args[labels["part"]], args[labels["parts"]] = part, ADJOINT_PARTS
+                    parts.append(partial(self._cpu_adjoint, (id(frame), position, part), kernel,
+                                         lane_count(dim, part, ADJOINT_PARTS), args, tape))
+                others = [helper.submit(job) for job in parts[1:]]
+                parts[0]()
+                for other in others:
+                    other.result()
+            else:
+                self._cpu_adjoint((id(frame), position), kernel, dim, [*inputs, *outputs], tape)
+        for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
+
+    def _cpu_adjoint(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
+        """Run the adjoint of one recorded CPU launch of ``kernel`` with arguments ``args``.
+
+        As ``wp.launch(..., adjoint=True)`` does, but the packed arguments are kept under ``key``
+        (a frame's buffers and the launch's place on its tape: every frame of a backward pass
+        launches the same kernels on the same arrays) and only an argument that is not the
+        object packed last time is packed again: packing a kernel's arguments and their
+        adjoints costs about what a substep's small kernels take to run (``_run``).
+        """
+        kept = self._adjoint_commands.get(key)
+        if kept is None or kept[0] is not kernel:
+            hooks = kernel.module.load(self.device).get_kernel_hooks(kernel)
+            kept = self._adjoint_commands[key] = (kernel, hooks, [None] * (1 + 2 * len(args)),
+                                                  [_UNPACKED] * len(args))
+        _, hooks, params, packed = kept
+        for i, (spec, value) in enumerate(zip(kernel.adj.args, args, strict=True)):
+            if value is not packed[i]:
+                params[1 + i] = wp.context.pack_arg(kernel, spec.type, spec.label, value, self.device, False)
+                params[1 + len(args) + i] = wp.context.pack_arg(kernel, spec.type, spec.label,
+                                                                tape.get_adjoint(value), self.device, True)
+                packed[i] = value
+        params[0] = wp.types.launch_bounds_t(dim)
+        hooks.backward(*params)
 
     def _launch(self, key: tuple, body: Callable[[], None]) -> None:
         """Run ``body`` (device work on the simulator's long-lived arrays only).
@@ -838,6 +928,7 @@ class Simulator:
         self._graphs.clear()
         self._seen.clear()
         self._commands.clear()
+        self._adjoint_commands.clear()
 
     def _check(self, state: _State, stats: wp.array) -> None:
         """Launch the state check of one frame into ``stats`` (B * K * 4, see ``_diverged``)."""
@@ -984,17 +1075,40 @@ class Simulator:
         dL_dx = np.asarray(dL_dx, dtype=np.float32)
         if dL_dx.shape != (n_frames + 1, B, N, 3):
             raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
-        states, grids, adjoint, seed = self._tape_buffers_for(n_sub)
+        frames, adjoint, seed = self._tape_buffers_for(n_sub)
         self.params.zero_grad()
         self.volume.grad.zero_()
         for array in adjoint.arrays:
             array.zero_()
-        for frame in reversed(range(n_frames)):
-            states[0].copy_from(checkpoints[frame])
-            self._collider_poses(start + frame, n_sub, dt)
-            seed.assign(np.ascontiguousarray(self._inward(dL_dx[frame + 1])).reshape(-1, 3))
-            self._launch(("backward", n_sub, dt),
-                         partial(self._frame_backward, states, grids, adjoint, seed, n_sub, dt))
+
+        def prepare(index: int) -> _FrameTape:  # the host's part: frame ``index`` at its start
+            frame = frames[index % len(frames)]
+            frame.states[0].copy_from(checkpoints[index])
+            self._pose_colliders(frame.colliders, start + index, n_sub, dt)
+            return frame
+
+        def seeded(index: int) -> None:
+            seed.assign(np.ascontiguousarray(self._inward(dL_dx[index + 1])).reshape(-1, 3))
+
+        if len(frames) == 1:  # a CUDA device: a frame's recomputation and adjoint, one graph
+            frame = frames[0]
+            for index in reversed(range(n_frames)):
+                prepare(index)
+                seeded(index)
+                self._launch(("backward", n_sub, dt), lambda: self._frame_adjoint(
+                    self._record_frame(frame, n_sub, dt), frame, adjoint, seed))
+        else:  # the CPU: a second thread recomputes the frame before while this one's adjoint runs
+            def recorded(index: int) -> wp.Tape:
+                return self._record_frame(prepare(index), n_sub, dt)
+
+            with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(ADJOINT_PARTS - 1) as helper:
+                pending = ahead.submit(recorded, n_frames - 1)
+                for index in reversed(range(n_frames)):
+                    tape = pending.result()
+                    if index > 0:
+                        pending = ahead.submit(recorded, index - 1)
+                    seeded(index)
+                    self._frame_adjoint(tape, frames[index % 2], adjoint, seed, helper)
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
             params={name: self.params.grad(name) for name in self.params.specs},
@@ -1002,19 +1116,19 @@ class Simulator:
             volume=self._outward(self.volume.grad.numpy().reshape(B, N).astype(np.float64)),
         )
 
-    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_State], list[_Grid], _State, wp.array]:
-        """Per-substep states and grids of one frame on a tape, the adjoint state, the seed."""
-        if self._tape_buffers is None or len(self._tape_buffers[1]) != n_sub:
+    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_FrameTape], _State, wp.array]:
+        """Buffers of a frame on a tape (two on the CPU, ``backward`` says why), the adjoint, the seed."""
+        if self._tape_buffers is None or len(self._tape_buffers[0][0].grids) != n_sub:
             self._tape_buffers = None  # free the old buffers before allocating the new ones
             self._forget_graphs()
             total = self.n_batch * self.n_particles
-            self._tape_buffers = (
-                [_State(total, self.device, True) for _ in range(n_sub + 1)],
-                [_Grid(self.n_batch, self.n_objects, self.dims, total, self._stress,
-                       self.device, True) for _ in range(n_sub)],
-                _State(total, self.device, False),
-                wp.zeros(total, dtype=wp.vec3, device=self.device),
-            )
+            frames = [_FrameTape([_State(total, self.device, True) for _ in range(n_sub + 1)],
+                                 [_Grid(self.n_batch, self.n_objects, self.dims, total, self._stress,
+                                        self.device, True) for _ in range(n_sub)],
+                                 self._collider_arrays(n_sub))
+                      for _ in range(2 if self.device == "cpu" else 1)]
+            self._tape_buffers = (frames, _State(total, self.device, False),
+                                  wp.zeros(total, dtype=wp.vec3, device=self.device))
         return self._tape_buffers
 
 
