@@ -1,18 +1,12 @@
 """Identified parameters with their uncertainty, per object: what identify_node publishes.
 
 Uncertainty (Laplace approximation): the loss curvature H_j along each free coordinate u_j comes
-from the second difference (L(u + h e_j) - 2 L(u) + L(u - h e_j)) / h^2, the response of the
-particles linearised at u (Gauss-Newton): u and u + h e_j are rolled out, P + 1 rows of one
-batched rollout, and L(u - h e_j) is the loss of the positions 2 x(u) - x(u + h e_j), where the
-linearised response puts them (``GlobalSearch.curvature_losses``). What this leaves out is the
-trajectories' own curvature in u, whose share of H_j is weighted by the residuals (small where
-the fit is good); the loss's curvature in the positions, through Chamfer, silhouette and track
-terms alike, is kept. A parameter that moves no particle has H_j = 0. The fit is treated as
-M = frames x objects independent observations whose residual variance is the fitted loss, so
-the negative log-likelihood is M L(u) / (2 L_min) and var(u_j) = 2 L_min / (M H_j); the delta
-method carries the standard deviation to the parameter's own units. Correlations between
-parameters are ignored (diagonal Hessian), which can make a standard deviation optimistic when
-two parameters trade off.
+from the second difference (L(u + h e_j) - 2 L(u) + L(u - h e_j)) / h^2 of forward rollouts, all
+2P + 1 of them in one batched rollout. The fit is treated as M = frames x objects independent
+observations whose residual variance is the fitted loss, so the negative log-likelihood is
+M L(u) / (2 L_min) and var(u_j) = 2 L_min / (M H_j); the delta method carries the standard
+deviation to the parameter's own units. Correlations between parameters are ignored (diagonal
+Hessian), which can make a standard deviation optimistic when two parameters trade off.
 
 Status per object, and for the scene's own parameters (ground, effects), as in diagnostic_msgs
 (``OK``, ``WARN``, ``ERROR``): WARN when one of its parameters is poorly identified (the
@@ -244,25 +238,27 @@ class Estimates:
             raise ValueError(f"{path}: {error}") from None
 
 
-def curvature_rollouts(free: int) -> int:
-    """The rollouts ``coordinate_std`` takes for ``free`` coordinates: the fit's end and a step along each."""
-    return 1 + free
-
-
 def coordinate_std(identifier: Identifier, result: FitResult,
                    frames: int | None = None) -> np.ndarray:
     """Standard deviation of each free coordinate u_j (inf where the curvature is not positive)."""
     u, h = result.u, CURVATURE_STEP
+    candidates = [u]
+    for j in range(len(u)):
+        for sign in (1.0, -1.0):
+            shifted = u.copy()
+            shifted[j] += sign * h
+            candidates.append(shifted)
     # one batch, one time step, on every device: the shifts are too small to change the stable
     # step much, and a loss differs by up to 10 % between time steps, more than a shift changes it
-    base, up, down = identifier.search.curvature_losses(u, h, result.velocity, frames)
+    losses = identifier.search.batch_losses(np.array(candidates), result.velocity, frames, together=True)
+    base = losses[0]
     obs = identifier.problem.observations
     last = min(frames or obs.n_frames - 1, obs.n_frames - 1)
     # a term per object and observed frame (a frame the stream lost has no points and no term)
     n_terms = max(1, sum(any(len(p) for p in frame) for frame in obs.points[1:last + 1])) * obs.n_objects
     std = np.full(len(u), np.inf)
     for j in range(len(u)):
-        curvature = (up[j] - 2 * base + down[j]) / h**2
+        curvature = (losses[1 + 2 * j] - 2 * base + losses[2 + 2 * j]) / h**2
         if np.isfinite(curvature) and curvature > 0 and np.isfinite(base):
             std[j] = math.sqrt(2 * max(base, 1e-30) / (n_terms * curvature))
     return std

@@ -24,14 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
-from mosiv_ros.identify.estimates import (
-    ERROR,
-    Estimates,
-    ObjectEstimate,
-    coordinate_std,
-    curvature_rollouts,
-    estimates_of,
-)
+from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
 from mosiv_ros.identify.family import (
     FamilyChoice,
     candidate_families,
@@ -106,7 +99,7 @@ def fit_problem(problem: FitProblem, config: IdentifyConfig,
     result = identifier.run()
     std = None
     if config.uncertainty:
-        rollouts = curvature_rollouts(len(result.u))
+        rollouts = 1 + 2 * len(result.u)  # the end point and a step either way along each coordinate
         identifier.report({"phase": "uncertainty", "done": 0, "total": rollouts})
         std = coordinate_std(identifier, result)
         identifier.report({"phase": "uncertainty", "done": rollouts, "total": rollouts})

@@ -109,12 +109,28 @@ class GlobalSearch:
 
         The shares are NaN with the scene-level (ablation) loss, which does not split by object.
         """
-        cuda = self.identifier.sim.device.startswith("cuda")
+        fit = self.identifier
+        obs = fit.problem.observations
+        frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
+        cuda = fit.sim.device.startswith("cuda")
         if together is None:
             together = cuda
-        frames, workers = self._set_up(candidates[0], velocity, frames, len(candidates))
+        fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
+        if fit.tensor_device is not None:  # built once, before threads share them
+            obs.tensors(fit.tensor_device)
+        else:
+            for f in range(1, frames + 1):
+                obs.trees(f)
+        # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
+        # slices of a batch) run side by side on every core, with the same results as in turn.
+        workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
         if together:  # one time step, the stiffest row's, for every row
-            jobs = self._batches(np.array_split(candidates, workers), frames)
+            groups = [candidates] if cuda else np.array_split(candidates, workers)
+            sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
+            insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
+            substeps = max(sim.time_step()[0] for sim in sims)
+            jobs = [partial(self._score, sim, inside, frames, substeps)
+                    for sim, inside in zip(sims, insides, strict=True)]
         else:  # each row at its own time step, on the simulator of a free slot
             idle = queue.SimpleQueue()
             for slot in range(workers):
@@ -131,76 +147,16 @@ class GlobalSearch:
         # the costliest first (a row's cost is its substeps per frame), so that the cores finish
         # together; the results in the rows' order
         order = self._costliest_first(candidates) if workers > 1 and not together else range(len(jobs))
-        results = self._run_jobs(jobs, workers, order)
-        return (np.concatenate([total for total, *_ in results]),
-                np.concatenate([per for _, per, _ in results]))
-
-    def curvature_losses(self, u: np.ndarray, h: float, velocity: np.ndarray,
-                         frames: int | None = None) -> tuple[float, np.ndarray, np.ndarray]:
-        """The loss at ``u``, at u + h e_j and along the linearised response at u - h e_j.
-
-        For each coordinate j (the uncertainty's curvature, ``identify.estimates``). u and the
-        points u + h e_j roll out in one batch at one time step (each slice of it on the CPU,
-        with u's row at its head); the loss at u - h e_j is that of the positions
-        2 x(u) - x(u + h e_j), the response x(u + t e_j) ~ x(u) + t (x(u + h e_j) - x(u)) / h
-        at t = -h, with the particles inside the surface at u - h e_j: no rollout. Over frames
-        1..``frames`` (default all); NaN where a rollout diverged.
-        """
-        frames, workers = self._set_up(u, velocity, frames, len(u))
-        steps = h * np.eye(len(u))
-        slices = np.array_split(np.arange(len(u)), workers)
-        below = self.inside_of(u - steps)
-        results = self._run_jobs(self._batches([np.vstack([u[None], u + steps[s]]) for s in slices],
-                                               frames, [below[s] for s in slices]), workers)
-        up = np.concatenate([total[1:1 + len(s)] for (total, *_), s in zip(results, slices, strict=True)])
-        down = np.concatenate([total[1 + len(s):] for (total, *_), s in zip(results, slices, strict=True)])
-        return float(results[0][0][0]), up, down
-
-    def _set_up(self, first: np.ndarray, velocity: np.ndarray, frames: int | None,
-                rows: int) -> tuple[int, int]:
-        """Set the identifier up for a batch whose first row is ``first``: (frames, workers).
-
-        The frames scored (``frames``, default all) and how many simulators run side by side.
-        """
-        fit = self.identifier
-        obs = fit.problem.observations
-        frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
-        fit.apply(first, velocity)  # the rows' common set-up: initial velocity, fixed values
-        if fit.tensor_device is not None:  # built once, before threads share them
-            obs.tensors(fit.tensor_device)
-        else:
-            for f in range(1, frames + 1):
-                obs.trees(f)
-        # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
-        # slices of a batch) run side by side on every core, with the same results as in turn.
-        if fit.sim.device.startswith("cuda"):
-            return frames, 1
-        return frames, max(1, min(rows, fit.settings.cpu_workers or os.cpu_count() or 1))
-
-    def _batches(self, groups: list[np.ndarray], frames: int,
-                 mirrored: list[np.ndarray] | None = None) -> list:
-        """Jobs that roll each group of rows out in one batch, at the stiffest row's time step.
-
-        ``mirrored``: per group, the inside masks of the mirror images that ``_score`` adds.
-        """
-        sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
-        insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
-        substeps = max(sim.time_step()[0] for sim in sims)
-        return [partial(self._score, sim, inside, frames, substeps, None if mirrored is None else mirrored[k])
-                for k, (sim, inside) in enumerate(zip(sims, insides, strict=True))]
-
-    def _run_jobs(self, jobs: list, workers: int, order=None) -> list:
-        """The jobs' results in order, run on ``workers`` threads (in ``order``, default theirs)."""
         if workers == 1:  # the GPU's one batch, or one core: in this thread, as before the threads
             results = [job() for job in jobs]
         else:
-            order = range(len(jobs)) if order is None else order
             with ThreadPoolExecutor(max_workers=workers) as pool:
                 done = dict(zip(order, pool.map(lambda i: jobs[i](), order), strict=True))
             results = [done[i] for i in range(len(jobs))]
         self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
                                strict=True))
-        return results
+        return (np.concatenate([total for total, *_ in results]),
+                np.concatenate([per for _, per, _ in results]))
 
     def _costliest_first(self, candidates: np.ndarray) -> list[int]:
         """The rows of ``candidates`` by their substeps per frame, the most first (ties in order)."""
@@ -229,44 +185,28 @@ class GlobalSearch:
         fit = self.identifier
         n = len(candidates)
         batch.set_initial_velocity(fit.sim.initial_velocity()[0])
-        for name in dict.fromkeys(e.name for e in fit.entries if e.name != OFFSET):
-            values = np.repeat(fit.sim.params.get(name), n, axis=0)
+        offsets = np.repeat(fit.offsets[None], n, axis=0)
+        for name in dict.fromkeys(e.name for e in fit.entries):
+            values = offsets if name == OFFSET else np.repeat(fit.sim.params.get(name), n, axis=0)
             for i, entry in enumerate(fit.entries):
                 if entry.name == name:
                     values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
-            batch.params.set(name, values)
-        boundary = fit.problem.boundary
-        if boundary is not None:
-            batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in self._offsets(candidates)]))
-        return self.inside_of(candidates)
-
-    def inside_of(self, candidates: np.ndarray) -> np.ndarray:
-        """(B, N): which particles are inside the surface at each row of ``candidates``."""
-        fit = self.identifier
+            if name != OFFSET:
+                batch.params.set(name, values)
         boundary = fit.problem.boundary
         if boundary is None:
-            return np.ones((len(candidates), len(fit.index)), dtype=bool)
-        return np.stack([boundary.inside(o[fit.index]) for o in self._offsets(candidates)])
+            return np.ones((n, len(fit.index)), dtype=bool)
+        batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in offsets]))
+        return np.stack([boundary.inside(o[fit.index]) for o in offsets])
 
-    def _offsets(self, candidates: np.ndarray) -> np.ndarray:
-        """(B, K): the boundary offsets of each row (the identifier's where no entry sets one)."""
-        fit = self.identifier
-        offsets = np.repeat(fit.offsets[None], len(candidates), axis=0)
-        for i, entry in enumerate(fit.entries):
-            if entry.name == OFFSET:
-                offsets[:, entry.index[1]] = entry.coordinate.to_theta(candidates[:, i])
-        return offsets
-
-    def _score(self, batch: Simulator, inside: np.ndarray, frames: int, substeps: int | None = None,
-               mirrored: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
+               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
         """Roll the configured ``batch`` out over ``frames`` frames and score each row.
 
-        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds. With
-        ``mirrored`` (inside masks, one per row after the first), the mirror image 2 x_0 - x_b
-        of each such row b about the first is scored too, after the rows.
+        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
         """
         obs = self.identifier.problem.observations
-        n = batch.n_batch + (0 if mirrored is None else len(mirrored))
+        n = batch.n_batch
         tick = time.perf_counter()
         try:
             traj = batch.rollout(frames, substeps=substeps)
@@ -274,9 +214,6 @@ class GlobalSearch:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
         rolled = time.perf_counter()
-        if mirrored is not None:
-            traj = np.concatenate([traj, 2 * traj[:, :1].astype(np.float64) - traj[:, 1:]], axis=1)
-            inside = np.concatenate([inside, mirrored])
         if self.identifier.tensor_device is not None:
             total, per = self._tensor_scores(traj, inside, frames)
         else:
