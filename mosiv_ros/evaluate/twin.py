@@ -39,7 +39,7 @@ from mosiv_ros.metrics import chamfer_distance, emd, iou, psnr, ssim
 from mosiv_ros.predict.twin import Prediction
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.recon.tracks import SurfaceTracks
-from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
+from mosiv_ros.synth.render import SPLAT_RADIUS, Floor, Splats, render_view, surface_normals
 
 LOG_SCALE = ("E", "yield_stress", "bulk_modulus", "viscosity")
 SCENE = "scene"
@@ -48,8 +48,6 @@ PER_DENSITY = "log10_ratio_per_density"
 """Error key of a scale parameter divided by the object's density, against the truth's."""
 EMD_EVERY = 3
 """EMD (an exact assignment) on every third frame only."""
-SPLAT_RADIUS = 0.8
-"""Rendered particle radius in particle spacings, as the synthetic recorder draws them."""
 
 
 @dataclass

@@ -46,14 +46,10 @@ from mosiv_ros.synth.bodies import gripper_points
 from mosiv_ros.synth.effects import add_mask_noise, camera_offsets, declaration, simulator_effects
 from mosiv_ros.synth.ground_truth import GroundTruthParticles, write_ground_truth
 from mosiv_ros.synth.layout import Layout, lay_out
-from mosiv_ros.synth.render import Floor, Splats, render_view, surface_normals
+from mosiv_ros.synth.render import SPLAT_RADIUS, Floor, Splats, render_view, surface_normals
 from mosiv_ros.synth.scene_file import CameraSpec, SceneSpec, check_recording_size
 
 _LOG = logging.getLogger(__name__)
-
-SPLAT_RADIUS = 0.8
-"""Radius of a rendered particle ball, in particle spacings (> 1/sqrt(2): no see-through gaps)."""
-
 
 
 def record(spec: SceneSpec, out: str | Path, *, seed: int = 0, compress: bool = True,

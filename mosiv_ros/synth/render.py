@@ -39,6 +39,9 @@ BACKGROUND_RGB = np.array([30, 34, 44], dtype=np.uint8)
 LIGHT_DIRECTION = np.array([0.4, 0.3, 1.0]) / np.linalg.norm([0.4, 0.3, 1.0])  # towards light
 AMBIENT = 0.3
 NEIGHBOURS = 16  # particles in a normal estimate
+SPLAT_RADIUS = 0.8
+"""Radius of a rendered particle ball, in particle spacings (> 1/sqrt(2): no see-through gaps);
+the recorder and the twin's re-rendering draw particles alike."""
 _CANDIDATES_PER_BATCH = 2_000_000  # (pixel, ball) pairs tested at once
 
 
