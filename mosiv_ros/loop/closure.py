@@ -341,6 +341,13 @@ class LoopClosure:
                 problem.fixed.setdefault(name, set()).update(params)
         return problem
 
+    def declared(self, effects: Sequence[tuple[Candidate, dict[str, float]]], ctx: Context | None) -> Scene:
+        """The declared scene with each of ``effects`` declared at its values, in order."""
+        scene = self.scene
+        for candidate, values in effects:
+            scene = candidate.declare(scene, values, ctx)
+        return scene
+
     def fit(self, effects: list[tuple[Candidate, dict[str, float]]], ctx: Context | None,
             label: str, key: str, velocity: np.ndarray | None = None, warm: Model | None = None,
             start: Observations | None = None, follow: bool = True) -> Model:
@@ -361,11 +368,8 @@ class LoopClosure:
         identify = self.identify
         if identify.checkpoint_dir:
             identify = replace(identify, checkpoint_dir=str(Path(identify.checkpoint_dir) / f"round{self.round}-{key}"))
-        scene = self.scene
-        for candidate, values in effects:
-            scene = candidate.declare(scene, values, ctx)
         observations = start or self.observations(effects, ctx)
-        problem = self.problem(scene, [c for c, _ in effects], ctx, observations)
+        problem = self.problem(self.declared(effects, ctx), [c for c, _ in effects], ctx, observations)
         problem.initial_velocity = velocity
         if warm is not None:
             result = warm.identification.result
@@ -376,9 +380,7 @@ class LoopClosure:
         with_family_scores(identification.estimates, self.families)
         prediction = rollout(identification.identifier, observations)
         fitted = [(c, c.read(identification.estimates, prediction, ctx)) for c, _ in effects]
-        closed = self.scene
-        for candidate, values in fitted:
-            closed = candidate.declare(closed, values, ctx)
+        closed = self.declared(fitted, ctx)
         analysis = self.analyse(prediction, observations)
         _LOG.info("%s: held-out centroid error %.2f mm (fitted frames %.2f mm), %s", label,
                   analysis.errors()["held_out"] * 1e3, analysis.errors()["fitted"] * 1e3,
@@ -725,10 +727,7 @@ class LoopClosure:
         _LOG.info("the field is %s's law (%s, %.1f%% apart): named %s", candidate.name, at, 100 * misfit,
                   candidate.name)
         effects = field.refit.effects[:-1] + [(held, dict(values))]
-        scene = self.scene
-        for effect, effect_values in effects:
-            scene = effect.declare(scene, effect_values, ctx)
-        return replace(field.refit, effects=effects, scene=scene)
+        return replace(field.refit, effects=effects, scene=self.declared(effects, ctx))
 
     def choose_families(self) -> list[FamilyChoice]:
         """The family of every object the scene leaves open, chosen on the fitted frames.
