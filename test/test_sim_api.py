@@ -384,6 +384,7 @@ def _lane_particles(part: int, parts: int, out: wp.array(dtype=int)):
     out[wp.tid()] = lane_particle(wp.tid(), part, parts)
 
 
+@pytest.mark.skipif(not wp.is_cpu_available(), reason="the parts are the CPU's: this Warp has no CPU compiler")
 @pytest.mark.parametrize("total", [1, 127, 128, 300, 3121])
 def test_the_parts_of_a_launch_run_every_particle_once_on_replicas_of_their_own(total):
     # P2G's adjoint runs in parts side by side on the CPU: together they cover every particle
