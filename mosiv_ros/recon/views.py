@@ -24,10 +24,6 @@ import numpy as np
 from mosiv_ros.io.recording import Camera, Frame
 
 
-FLOOR_BAND = 0.01
-"""Metres above the declared ground within which a background surface is the floor, not an occluder."""
-
-
 def majority_filter(labels: np.ndarray, size: int) -> np.ndarray:
     """Each pixel takes the most frequent label of its ``size`` x ``size`` window.
 
@@ -79,7 +75,7 @@ class View:
         self.ids = frozenset(int(i) for i in np.unique(self.labels) if i != 0)
         self._any = _summed_area(self.labels != 0)
         self._object: dict[int, np.ndarray] = {}
-        self._occluders: tuple[tuple[float, ...], np.ndarray, np.ndarray] | None = None
+        self._background_depth: np.ndarray | None = None
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, z) of world points (N, 3), each (N,).
@@ -122,41 +118,26 @@ class View:
             self._object[object_id] = _summed_area(self.labels == object_id)
         return _rectangles(self._object[object_id], r0, r1, c0, c1)
 
-    def occluder_depth(self, ground: tuple[np.ndarray, float]) -> np.ndarray:
-        """Per pixel, the measured depth of a background surface that may hide what lies behind it.
+    def nearest_background(self, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
+                           c1: np.ndarray) -> np.ndarray:
+        """The least measured depth of the background pixels in the rectangles (as ``count_any``).
 
-        inf on object pixels, without a depth return, and on the floor: a background point less
-        than ``FLOOR_BAND`` above the ``ground`` plane (unit normal, height) hides only what lies
-        under the floor, which carving keeps out anyway, and at a grazing angle a floor pixel's
-        depth varies by more than a voxel across the pixel. Without depth, inf everywhere.
+        inf where a rectangle holds no background pixel with a depth return, or without depth. A
+        background pixel nearer than a point behind it is an unsegmented surface (a gripper, a
+        hand, a tool) that hides the point. Exact minima from a sparse table: the least of four
+        blocks of power-of-two sides that cover the rectangle.
         """
-        return self._occluder_tables(ground)[0]
-
-    def nearest_occluder(self, ground: tuple[np.ndarray, float], r0: np.ndarray, r1: np.ndarray,
-                         c0: np.ndarray, c1: np.ndarray) -> np.ndarray:
-        """The least ``occluder_depth`` in the rectangles (as ``count_any``).
-
-        Exact minima from a sparse table: the least of four blocks of power-of-two sides that
-        cover the rectangle.
-        """
-        table = self._occluder_tables(ground)[1]
+        if self.depth is None:
+            return np.full(np.shape(r0), np.inf)
+        if self._background_depth is None:
+            self._background_depth = _sparse_minima(np.where(
+                (self.labels == 0) & np.isfinite(self.depth), self.depth, np.inf).astype(np.float32))
+        table = self._background_depth
         a = np.log2(r1 - r0 + 1).astype(np.intp)
         b = np.log2(c1 - c0 + 1).astype(np.intp)
         r_end, c_end = r1 - (1 << a) + 1, c1 - (1 << b) + 1
         return np.minimum(np.minimum(table[a, b, r0, c0], table[a, b, r_end, c0]),
                           np.minimum(table[a, b, r0, c_end], table[a, b, r_end, c_end]))
-
-    def _occluder_tables(self, ground: tuple[np.ndarray, float]) -> tuple[np.ndarray, np.ndarray]:
-        key = (*np.asarray(ground[0], dtype=float).tolist(), float(ground[1]))
-        if self._occluders is None or self._occluders[0] != key:
-            depth = np.full(self.labels.shape, np.inf, dtype=np.float32)
-            if self.depth is not None:
-                row, col = np.nonzero((self.labels == 0) & np.isfinite(self.depth))
-                points = self.world_points(col, row, self.depth[row, col])
-                above = points @ np.asarray(ground[0], dtype=np.float64) - ground[1] >= FLOOR_BAND
-                depth[row[above], col[above]] = self.depth[row[above], col[above]]
-            self._occluders = (key, depth, _sparse_minima(depth))
-        return self._occluders[1], self._occluders[2]
 
     def touches_border(self, object_id: int) -> bool:
         """Whether the object's silhouette reaches the image border (it may extend beyond it)."""
