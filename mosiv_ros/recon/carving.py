@@ -7,11 +7,6 @@ background pixel, or, with depth, lies in front of the measured surface by more 
 tolerance (free space, whatever the label). A pixel of *another* object is unknown, not empty: it
 may hide this one. Pixels outside an image are unknown too. Below a known ground plane nothing is
 kept (no camera can see there, so carving alone would keep the object's shadow in the ground).
-With depth and a known ground plane, a background pixel whose measured surface lies in front of
-the voxel is unknown too: something nobody segmented (a gripper pressing the object, a hand, a
-tool) hides the voxel there. Without a ground plane background pixels carve whatever their depth:
-the floor itself hides everything under an object from every camera, and only the plane keeps
-that out.
 What it is not for: separating objects from each other or extracting surfaces (``reconstruct``).
 
 Coarse to fine: cells of 2^l voxels are tested conservatively, survivors split into 8, down to
@@ -89,10 +84,8 @@ def carve_object(
     level = max(0, math.ceil(math.log2(max(shape.max() / COARSEST_CELLS, 1.0))))
     top = -(-shape // (1 << level))
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in top], indexing="ij"), -1).reshape(-1, 3)
-    occluders = ground is not None  # see the module docstring
     while level > 0:
-        keep = _keep_cells(views, object_id, lattice, cells, level, min_views,
-                           depth_tolerance if occluders else None)
+        keep = _keep_cells(views, object_id, lattice, cells, level, min_views)
         if ground is not None:
             radius = lattice.voxel_size * (1 << level) * math.sqrt(3.0) / 2.0
             keep &= lattice.centres(cells, level) @ ground[0] + radius >= ground[1]
@@ -103,16 +96,12 @@ def carve_object(
     cells = cells[np.all(cells < shape, axis=1)]
     if ground is not None:
         cells = cells[lattice.centres(cells) @ ground[0] >= ground[1]]
-    return cells[_keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance, occluders)]
+    return cells[_keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance)]
 
 
 def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: np.ndarray,
-                level: int, min_views: int, occluder_tolerance: float | None) -> np.ndarray:
-    """Conservative test of cells of 2^level voxels: False only where the voxels surely fail.
-
-    ``occluder_tolerance``: the depth tolerance where a background surface in front may hide a
-    voxel (the module docstring), else None.
-    """
+                level: int, min_views: int) -> np.ndarray:
+    """Conservative test of cells of 2^level voxels: False only where the voxels surely fail."""
     half = lattice.voxel_size * (1 << level) / 2.0
     corners = (lattice.centres(cells, level)[:, None, :] + half * _CORNERS[None]).reshape(-1, 3)
     carved = np.zeros(len(cells), dtype=bool)
@@ -131,11 +120,7 @@ def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: 
         touches = straddles | ((c1 >= 0) & (r1 >= 0) & (c0 < view.width) & (r0 < view.height))
         box = (np.clip(r0, 0, view.height - 1), np.clip(r1, 0, view.height - 1),
                np.clip(c0, 0, view.width - 1), np.clip(c1, 0, view.width - 1))
-        empty = within & (view.count_any(*box) == 0)
-        if occluder_tolerance is not None:  # nor a background surface in front of its farthest corner
-            far = z.reshape(-1, 8).max(axis=1)
-            empty &= view.nearest_background(*box) >= far - occluder_tolerance
-        carved |= empty
+        carved |= within & (view.count_any(*box) == 0)
         seen += touches
         # The object may be there: its pixels are in the footprint, or part of the footprint
         # lies outside the image, or the cell reaches the camera plane.
@@ -144,8 +129,8 @@ def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: 
 
 
 def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels: np.ndarray,
-                 min_views: int, depth_tolerance: float, occluders: bool) -> np.ndarray:
-    """Exact test of single voxels at their centres (``occluders``: the module docstring's)."""
+                 min_views: int, depth_tolerance: float) -> np.ndarray:
+    """Exact test of single voxels at their centres."""
     centres = lattice.centres(voxels)
     empty = np.zeros(len(voxels), dtype=bool)
     seen = np.zeros(len(voxels), dtype=np.int32)
@@ -154,14 +139,11 @@ def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels
         u, v, z = view.project(centres)
         row, col, inside = view.pixels(u, v)
         label = view.labels[row, col]
-        background = inside & (label == 0)
+        empty |= inside & (label == 0)
         if view.depth is not None:
             depth = view.depth[row, col]
             with np.errstate(invalid="ignore"):
-                if occluders:
-                    background &= ~(depth < z - depth_tolerance)
                 empty |= inside & (z < depth - depth_tolerance)
-        empty |= background
         seen += inside
         evidence |= inside & (label == object_id)
     return ~empty & (seen >= min_views) & evidence

@@ -75,7 +75,6 @@ class View:
         self.ids = frozenset(int(i) for i in np.unique(self.labels) if i != 0)
         self._any = _summed_area(self.labels != 0)
         self._object: dict[int, np.ndarray] = {}
-        self._background_depth: np.ndarray | None = None
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, z) of world points (N, 3), each (N,).
@@ -117,27 +116,6 @@ class View:
         if object_id not in self._object:
             self._object[object_id] = _summed_area(self.labels == object_id)
         return _rectangles(self._object[object_id], r0, r1, c0, c1)
-
-    def nearest_background(self, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
-                           c1: np.ndarray) -> np.ndarray:
-        """The least measured depth of the background pixels in the rectangles (as ``count_any``).
-
-        inf where a rectangle holds no background pixel with a depth return, or without depth. A
-        background pixel nearer than a point behind it is an unsegmented surface (a gripper, a
-        hand, a tool) that hides the point. Exact minima from a sparse table: the least of four
-        blocks of power-of-two sides that cover the rectangle.
-        """
-        if self.depth is None:
-            return np.full(np.shape(r0), np.inf)
-        if self._background_depth is None:
-            self._background_depth = _sparse_minima(np.where(
-                (self.labels == 0) & np.isfinite(self.depth), self.depth, np.inf).astype(np.float32))
-        table = self._background_depth
-        a = np.log2(r1 - r0 + 1).astype(np.intp)
-        b = np.log2(c1 - c0 + 1).astype(np.intp)
-        r_end, c_end = r1 - (1 << a) + 1, c1 - (1 << b) + 1
-        return np.minimum(np.minimum(table[a, b, r0, c0], table[a, b, r_end, c0]),
-                          np.minimum(table[a, b, r0, c_end], table[a, b, r_end, c_end]))
 
     def touches_border(self, object_id: int) -> bool:
         """Whether the object's silhouette reaches the image border (it may extend beyond it)."""
@@ -206,25 +184,6 @@ class View:
             going = ~hit & (t < leave[todo])
             todo, t = todo[going], t[going]
         return hits
-
-
-def _sparse_minima(image: np.ndarray) -> np.ndarray:
-    """(A, B, H, W) table whose [a, b, r, c] is the least of ``image`` over rows r..r + 2^a - 1 and
-    columns c..c + 2^b - 1 (clipped at the image's edges)."""
-    height, width = image.shape
-    rows = [image]
-    for a in range(1, int(np.log2(height)) + 1):
-        below = np.full_like(image, np.inf)
-        below[:height - (1 << (a - 1))] = rows[-1][1 << (a - 1):]
-        rows.append(np.minimum(rows[-1], below))
-    table = np.empty((len(rows), int(np.log2(width)) + 1, height, width), dtype=image.dtype)
-    for a, row in enumerate(rows):
-        table[a, 0] = row
-        for b in range(1, table.shape[1]):
-            right = np.full_like(image, np.inf)
-            right[:, :width - (1 << (b - 1))] = table[a, b - 1][:, 1 << (b - 1):]
-            table[a, b] = np.minimum(table[a, b - 1], right)
-    return table
 
 
 def _rectangles(table: np.ndarray, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
