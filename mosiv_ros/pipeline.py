@@ -87,7 +87,8 @@ def evaluate(prepared: Prepared, estimates: Estimates, window: int, out: OutputD
     timing = dict(prepared.timing)
     tick = time.perf_counter()
     scene = prepared.recording.scene
-    twin = Twin(prepared.lifted, estimates, scene, device=config.prediction.device)
+    twin = Twin(prepared.lifted, estimates, scene, device=config.prediction.device,
+                gripper_poses=prepared.recording.gripper_poses)
     seconds = (len(prepared.frames) - 1) * estimates.frame_dt + config.prediction.horizon
     _LOG.info("prediction: the twin over the recording and %.1f s past it", config.prediction.horizon)
     prediction = twin.predict(seconds)

@@ -4,7 +4,8 @@ What it is for: the one translation from what a scene declares and lifting gives
 ``lifting``) to the simulator's inputs (``mosiv_ros.sim``), shared by the fit
 (``identify.problem``) and the twin (``predict.twin``): ``to_sim_particles`` (positions, M-PhyGs
 volumes for the boundary offsets o_s tried, object index 0..K-1), ``ground_of`` (the declared
-ground plane), ``effects_of`` (gravity and the declared simulator effects), ``declared_params``
+ground plane), ``effects_of`` (gravity and the declared simulator effects), ``colliders_of`` (the
+declared gripper along its recorded poses), ``declared_params``
 (an object's declared parameters in the simulator's names and units) and ``OFFSET``, the name
 the boundary offset goes by among an object's parameters.
 What it is not for: lifting itself, choosing the offsets or the free parameters
@@ -13,14 +14,18 @@ What it is not for: lifting itself, choosing the offsets or the free parameters
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping, Sequence
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.scene import Scene, SceneObject
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.sim import BUILTIN_EFFECTS, Gravity, Ground, ObjectModel, Particles
+from mosiv_ros.sim import BUILTIN_EFFECTS, Collider, Gravity, Ground, ObjectModel, Particles
 from mosiv_ros.sim.materials import in_sim_units
+
+_LOG = logging.getLogger(__name__)
 
 OFFSET = "boundary_offset"
 """The name of an object's boundary offset o_s among its parameters (not a simulator parameter)."""
@@ -54,6 +59,27 @@ def ground_of(scene: Scene) -> Ground | None:
     height, normal = scene.ground.plane()
     friction = scene.ground.friction
     return Ground(height=height, normal=normal, friction=Ground.friction if friction is None else friction)
+
+
+def colliders_of(scene: Scene, poses: Sequence[tuple[int, np.ndarray]], start_ns: int) -> list[Collider]:
+    """The declared gripper as a collider along ``poses`` ((stamp_ns, T_world_gripper), in order).
+
+    Times are seconds after ``start_ns``; before the first pose and after the last the gripper
+    holds still there (``sim.Collider``). Empty without a declared gripper; a declared gripper
+    without poses is left out with a warning (nothing says where it is).
+    """
+    if scene.gripper is None:
+        return []
+    if not poses:
+        _LOG.warning("the scene declares a gripper but no pose of it was given (/gripper/pose): "
+                     "it is simulated without the gripper")
+        return []
+    g = scene.gripper
+    times = np.array([(stamp - start_ns) * 1e-9 for stamp, _ in poses])
+    positions = np.array([T[:3, 3] for _, T in poses])
+    quaternions = Rotation.from_matrix(np.array([T[:3, :3] for _, T in poses])).as_quat()
+    return [Collider(g.shape, g.size, times, positions, quaternions,
+                     friction=Collider.friction if g.friction is None else g.friction, name="gripper")]
 
 
 def effects_of(scene: Scene, objects: Sequence[ObjectModel]) -> list:

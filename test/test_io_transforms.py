@@ -1,8 +1,8 @@
-"""The static transform tree shared by the bag reader and reconstruction_node."""
+"""The static transform tree shared by the bag reader and the nodes, and stamped poses placed by it."""
 
 import numpy as np
 
-from mosiv_ros.io.transforms import StaticTransforms
+from mosiv_ros.io.transforms import PoseStream, StaticTransforms
 
 
 def pose(yaw: float, t) -> np.ndarray:
@@ -41,3 +41,19 @@ def test_a_transform_published_again_replaces_the_old_one():
     tree.add("world", "cam", pose(0.0, [1, 0, 0]))
     tree.add("world", "cam", pose(0.0, [0, 2, 0]))
     np.testing.assert_allclose(tree.to_world("cam")[:3, 3], [0, 2, 0])
+
+
+def test_poses_received_before_their_frames_transform_are_placed_once_it_arrives_in_stamp_order():
+    stream = PoseStream(StaticTransforms())
+    stream.add(200, "base", pose(0.0, [0.1, 0, 0]))
+    stream.add(100, "base", pose(0.5, [0.0, 0, 0]))
+    stream.add(150, "elsewhere", pose(0.0, [0, 0, 0]))
+    assert stream.world() == ([], ["base", "elsewhere"])
+    T_world_base = pose(np.pi / 2, [1, 0, 0])
+    stream.transforms.add("world", "base", T_world_base)
+    poses, unreached = stream.world()
+    assert [stamp for stamp, _ in poses] == [100, 200] and unreached == ["elsewhere"]
+    np.testing.assert_allclose(poses[1][1], T_world_base @ pose(0.0, [0.1, 0, 0]), atol=1e-12)
+    np.testing.assert_allclose(poses[1][1][:3, 3], [1, 0.1, 0], atol=1e-12)
+    stream.add(100, "world", pose(0.0, [0, 0, 2]))  # a pose at a stamp seen before replaces it
+    np.testing.assert_allclose(stream.world()[0][0][1][:3, 3], [0, 0, 2])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -91,6 +92,22 @@ def test_five_nodes_give_a_late_subscriber_latched_estimates_and_future_predicti
     assert np.all(cloud.fields["t"] >= 0) and cloud.fields["t"].max() > 0.3
     stamps = [stamp_to_ns(p.header.stamp) for p in path.poses]
     assert stamps[0] >= last_fitted and stamps == sorted(stamps)
+
+
+@pytest.mark.slow
+def test_identify_node_fits_with_the_gripper_the_bag_replays_on_gripper_pose(synth_pair_bag, fast_params):
+    bag = str(synth_pair_bag)
+    specs = [NodeSpec("reconstruction_node", {"scene": bag}), NodeSpec("lifting_node", {"scene": bag}),
+             NodeSpec("identify_node", {"scene": bag, "window": 4, "output_yaml": ""}),
+             NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1,
+                                          "wait_timeout": 60.0})]
+    expected = len(read_recording(synth_pair_bag).gripper_poses)
+    with Graph(specs, params_file=fast_params, sink=None) as graph:
+        line = graph.nodes["identify_node"].wait_for_line("gripper poses in the world", 300)
+        graph.nodes["identify_node"].wait_for_line("identification done", 300)
+        lines = graph.nodes["identify_node"].lines
+    assert f"{expected} gripper poses" in line and expected > 0
+    assert not any("declares a gripper but no pose" in text for text in lines)
 
 
 @pytest.mark.slow
@@ -265,6 +282,30 @@ def test_twin_follows_an_object_past_its_first_domain_instead_of_stopping_at_the
     # the wider simulator keeps the identified values
     assert twin.sim.params.get("ground.friction") == pytest.approx(0.0)
     assert twin.sim.params.get("E")[0, 0] == pytest.approx(2e4, rel=1e-6)
+
+
+def test_twin_moves_the_declared_gripper_along_its_poses_and_it_pushes_the_object(drop_bag, caplog):
+    # a 3 cm sphere sweeps along +x through the resting jelly in 0.3 s, then holds still past
+    # its last pose; without its poses the twin leaves it out and says so
+    prepared = prepare(drop_bag, RunConfig())
+    estimates = Estimates([ObjectEstimate(1, "jelly", "elastic", {"E": 2e4, "nu": 0.3})],
+                          stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
+    scene = dataclasses.replace(prepared.recording.scene, gripper={"shape": "sphere", "radius": 0.03})
+    centre = prepared.lifted.x.mean(axis=0)
+    poses = []
+    for k, dx in enumerate(np.linspace(-0.15, 0.15, 4)):
+        T = np.eye(4)
+        T[:3, 3] = centre + [dx, 0.0, 0.0]
+        poses.append((estimates.stamp_ns + round(k * 0.1e9), T))
+    pushed = Twin(prepared.lifted, estimates, scene, device="cpu", gripper_poses=poses).predict(0.5)
+    with caplog.at_level(logging.WARNING, logger="mosiv_ros.simulation"):
+        alone = Twin(prepared.lifted, estimates, scene, device="cpu").predict(0.5)
+    assert "declares a gripper but no pose of it was given" in caplog.text
+    moved = pushed.centroids()[-1, 0] - alone.centroids()[-1, 0]
+    assert moved[0] > 0.05, moved  # pushed along the sweep (measured: 0.11 m)
+    # past the last pose the gripper holds still: no particle deeper in it than about half a
+    # grid cell (the collider acts at grid nodes; measured: 2.5 cm from its centre, radius 3 cm)
+    assert np.linalg.norm(pushed.positions[-1] - (centre + [0.15, 0.0, 0.0]), axis=1).min() > 0.02
 
 
 def test_twin_predicts_the_solid_not_the_boundary_band(drop_bag):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -11,6 +12,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
+from geometry_msgs.msg import PoseStamped, TransformStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
@@ -19,12 +21,14 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
 from test_io_scene import alias_bomb
 from test_nodes_process import LATCHED, Listener
+from tf2_msgs.msg import TFMessage
 
 from mosiv_ros.graph import Graph, NodeSpec, executable_path
 from mosiv_ros.identify.estimates import WARN, Estimates, ObjectEstimate
 from mosiv_ros.io.errors import MAX_SHOWN_CHARS
 from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types, stamp_to_ns
-from mosiv_ros.nodes.common import lifted_from_msg
+from mosiv_ros.io.scene import scene_to_yaml
+from mosiv_ros.nodes.common import STREAM_QOS, TF_STATIC_QOS, lifted_from_msg
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.predict.twin import Twin
 from mosiv_ros.prepare import RunConfig, prepare
@@ -174,6 +178,63 @@ def test_prediction_node_predicts_from_an_estimates_file_and_answers_what_if_req
     expected = twin.what_if(WhatIf.parse("{jelly: [1.0, 0.0, -0.4]}"), 0.3, 10.0).centroids()[:, 0]
     got = [[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in what_if.poses]
     np.testing.assert_allclose(got, expected, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_prediction_node_moves_the_declared_gripper_along_gripper_pose_placed_by_tf_static(
+        drop_bag, prepared, tmp_path):
+    # a declared 3 cm sphere sweeps through the jelly; its poses come in a robot frame that only
+    # /tf_static places in the world (sent after the poses), as a robot driver would publish them
+    estimates = _estimates(prepared.frames[0].stamp_ns)
+    path = estimates.write(tmp_path / "material_estimates.yaml")
+    scene = dataclasses.replace(prepared.recording.scene, gripper={"shape": "sphere", "radius": 0.03})
+    scene_file = tmp_path / "scene.yaml"
+    scene_file.write_text(scene_to_yaml(scene))
+    base = np.eye(4)
+    base[:3, 3] = [0.5, -0.2, 0.0]  # T_world_base
+    centre = prepared.lifted.x.mean(axis=0)
+    world_poses = []
+    for k, dx in enumerate(np.linspace(-0.15, 0.15, 4)):
+        T = np.eye(4)
+        T[:3, 3] = centre + [dx, 0.0, 0.0]
+        world_poses.append((estimates.stamp_ns + round(k * 0.1e9), T))
+    listener = Listener("test_gripper_driver")
+    try:
+        _, particles = _latch_particles(listener, prepared)
+        listener.subscribe(PathMsg, "/mosiv/predicted_paths/jelly", LATCHED)
+        poses_pub = listener.node.create_publisher(PoseStamped, "/gripper/pose", STREAM_QOS)
+        for stamp, T in world_poses:
+            msg = PoseStamped()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(stamp, 1_000_000_000)
+            msg.header.frame_id = "robot_base"
+            x, y, z = (np.linalg.inv(base) @ T)[:3, 3]
+            msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = float(x), float(y), float(z)
+            msg.pose.orientation.w = 1.0
+            poses_pub.publish(msg)
+        tf_pub = listener.node.create_publisher(TFMessage, "/tf_static", TF_STATIC_QOS)
+        transform = TransformStamped()
+        transform.header.frame_id, transform.child_frame_id = "world", "robot_base"
+        transform.transform.translation.x, transform.transform.translation.y = 0.5, -0.2
+        transform.transform.rotation.w = 1.0
+        tf_pub.publish(TFMessage(transforms=[transform]))
+        spec = NodeSpec("prediction_node", {"scene": str(scene_file), "horizon": 0.3, "device": "cpu"})
+        lifted = lifted_from_msg(particles)  # the node's particles, as it receives them
+        pushed = Twin(lifted, estimates, scene, device="cpu", gripper_poses=world_poses).future(0.3, 10.0)
+        alone = Twin(lifted, estimates, scene, device="cpu").future(0.3, 10.0)
+        expected = pushed.centroids()[:, 0]
+        assert np.abs(expected - alone.centroids()[:, 0]).max() > 0.05  # the gripper matters here
+
+        def centroids(msg) -> np.ndarray:
+            return np.array([[p.pose.position.x, p.pose.position.y, p.pose.position.z] for p in msg.poses])
+
+        # the first prediction may come before the poses (latched topics arrive in any order):
+        # one with them follows once they stop coming
+        with Graph([spec], params_file=path, sink=None):
+            assert listener.wait_for(lambda: any(
+                np.allclose(centroids(m), expected, atol=1e-6)
+                for m in listener.received["/mosiv/predicted_paths/jelly"]), 120)
+    finally:
+        listener.close()
 
 
 @pytest.mark.slow

@@ -42,7 +42,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mosiv_ros.identify.fit import Boundary, FitProblem
 from mosiv_ros.identify.observations import ATTACH_REACH, Observations, TrackAttachment, View
@@ -51,9 +50,9 @@ from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.recon.tracks import SurfaceTracks, TrackPoints
-from mosiv_ros.sim import Collider, ObjectModel, Particles, SimConfig, domain_around
+from mosiv_ros.sim import ObjectModel, Particles, SimConfig, domain_around
 from mosiv_ros.sim.materials import FAMILY_PARAMS
-from mosiv_ros.simulation import declared_params, effects_of, ground_of, to_sim_particles
+from mosiv_ros.simulation import colliders_of, declared_params, effects_of, ground_of, to_sim_particles
 
 _LOG = logging.getLogger(__name__)
 
@@ -181,7 +180,7 @@ def build_problem(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scen
                            floor=ground.height if ground is not None else None)
     config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=frame_dt, ground=ground,
                        effects=effects_of(scene, objects),
-                       colliders=_colliders(scene, gripper_poses, stamps[0]))
+                       colliders=colliders_of(scene, gripper_poses, stamps[0]))
     fixed = {o.name: set(o.params) for o in objects}  # declared values stay as declared
     if options.fit_density and len(objects) > 1:
         open_density = [o for o in objects if "density" not in o.params]
@@ -220,14 +219,3 @@ def _points(frame: ObservedFrame, object_id: int) -> np.ndarray:
     if geometry is None:
         return np.zeros((0, 3))
     return np.asarray(geometry.occupancy, dtype=np.float64)
-
-
-def _colliders(scene: Scene, poses: Sequence[tuple[int, np.ndarray]], start_ns: int) -> list[Collider]:
-    if scene.gripper is None or not poses:
-        return []
-    g = scene.gripper
-    times = np.array([(stamp - start_ns) * 1e-9 for stamp, _ in poses])
-    positions = np.array([T[:3, 3] for _, T in poses])
-    quaternions = Rotation.from_matrix(np.array([T[:3, :3] for _, T in poses])).as_quat()
-    return [Collider(g.shape, g.size, times, positions, quaternions,
-                     friction=Collider.friction if g.friction is None else g.friction, name="gripper")]

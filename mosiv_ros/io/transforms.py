@@ -4,7 +4,9 @@ The bag reader (cameras and the gripper's frame) and reconstruction_node (camera
 the world with it, so that a recording read from disk and one received live follow one rule: a
 chain of static transforms, each usable in either direction, from ``world``, as tf2 resolves it.
 
-What it is for: static poses. Not for time-varying transforms (``/tf``).
+What it is for: static poses, and stamped poses in a frame they connect to the world
+(``PoseStream``: the gripper's ``/gripper/pose``, received before or after its frame's
+transforms). Not for time-varying transforms (``/tf``).
 """
 
 from __future__ import annotations
@@ -43,3 +45,30 @@ class StaticTransforms:
                     known[neighbour] = known[current] @ T
                     queue.append(neighbour)
         return known.get(frame)
+
+
+class PoseStream:
+    """Stamped poses (a PoseStamped stream), each in its own frame, placed in the world on demand.
+
+    A pose may arrive before the static transforms that connect its frame to the world: poses are
+    kept as received and resolved when asked for (``world``).
+    """
+
+    def __init__(self, transforms: StaticTransforms) -> None:
+        self.transforms = transforms
+        self.received: dict[int, tuple[str, np.ndarray]] = {}
+
+    def add(self, stamp_ns: int, frame: str, T_frame_pose: np.ndarray) -> None:
+        """A pose at ``stamp_ns`` in ``frame`` (one pose per stamp: a later one replaces it)."""
+        self.received[int(stamp_ns)] = (frame, np.asarray(T_frame_pose, dtype=np.float64))
+
+    def world(self) -> tuple[list[tuple[int, np.ndarray]], list[str]]:
+        """(stamp_ns, T_world_pose) in stamp order, and the frames no transforms reach yet."""
+        poses, unreached = [], set()
+        for stamp, (frame, T) in sorted(self.received.items()):
+            T_world_frame = self.transforms.to_world(frame)
+            if T_world_frame is None:
+                unreached.add(frame)
+            else:
+                poses.append((stamp, T_world_frame @ T))
+        return poses, sorted(unreached)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -32,10 +33,13 @@ from rclpy.qos import (
     ReliabilityPolicy,
     qos_profile_sensor_data,
 )
+from tf2_msgs.msg import TFMessage
 
 from mosiv_ros.config import build, check, describe, parameters, value_of
+from mosiv_ros.io.bag import GRIPPER_POSE_TOPIC
 from mosiv_ros.io.errors import MosivIOError
-from mosiv_ros.io.messages import pointcloud_from_msg
+from mosiv_ros.io.messages import pointcloud_from_msg, pose_stamped_from_msg, transform_from_msg
+from mosiv_ros.io.transforms import PoseStream, StaticTransforms
 from mosiv_ros.lifting.lift import LiftedParticles
 
 #: Results a late subscriber must still get (DESIGN.md: reliable + transient_local, depth 1).
@@ -56,6 +60,11 @@ STREAM_QOS = QoSProfile(
     depth=STREAM_HISTORY,
     reliability=ReliabilityPolicy.RELIABLE,
     durability=DurabilityPolicy.TRANSIENT_LOCAL,
+)
+
+#: /tf_static: reliable, transient_local (its publishers latch it), any number of transforms.
+TF_STATIC_QOS = QoSProfile(
+    depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
 )
 
 _PARAMETER_TYPES = {
@@ -261,3 +270,47 @@ def log_cloud(node: Node, topic: str, cloud: Any) -> None:
     node.get_logger().info(
         f"{topic}: stamp {cloud.stamp_ns} ns, {len(cloud.xyz)} points, objects {objects}"
     )
+
+
+def gripper_poses(node: Node, on_change: Callable[[], None] | None = None) -> PoseStream:
+    """Subscribe ``node`` to ``/gripper/pose`` and ``/tf_static``; the poses as they arrive.
+
+    The poses keep their frames until asked for in the world (``PoseStream.world``), so either
+    topic may come first; ``on_change`` is called after each pose or transform message. A
+    malformed message is logged and dropped (``guarded``).
+    """
+    stream = PoseStream(StaticTransforms())
+
+    def on_transforms(transforms: list) -> None:
+        for parent, child, T in transforms:
+            stream.transforms.add(parent, child, T)
+        if on_change is not None:
+            on_change()
+
+    def on_pose(pose: tuple) -> None:
+        stream.add(pose[0], pose[2], pose[1])
+        if on_change is not None:
+            on_change()
+
+    node.create_subscription(
+        TFMessage, "/tf_static",
+        guarded(node, "/tf_static", lambda msg: [transform_from_msg(t) for t in msg.transforms],
+                on_transforms), TF_STATIC_QOS)
+    node.create_subscription(
+        PoseStamped, GRIPPER_POSE_TOPIC,
+        guarded(node, GRIPPER_POSE_TOPIC,
+                lambda msg: (*pose_stamped_from_msg(msg), str(msg.header.frame_id)),
+                on_pose), STREAM_QOS)
+    return stream
+
+
+def world_gripper_poses(node: Node, stream: PoseStream) -> list:
+    """The gripper's poses in the world so far (their number logged); a frame no transform reaches too."""
+    poses, unreached = stream.world()
+    if poses:
+        node.get_logger().info(f"{GRIPPER_POSE_TOPIC}: {len(poses)} gripper poses in the world")
+    if unreached:
+        node.get_logger().warning(
+            f"{GRIPPER_POSE_TOPIC}: poses in frame(s) {unreached} left out: no chain of /tf_static "
+            "transforms from world reaches them")
+    return poses

@@ -1,6 +1,8 @@
 """identify_node: observed geometry and particles in, per-object material estimates out (stage 3).
 
-Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set), ``/mosiv/surface_tracks``
+Subscribes to ``/mosiv/observed_objects`` (one cloud per frame set), ``/gripper/pose`` with
+``/tf_static`` (a declared gripper's trajectory, placed in the world: the fit's collider),
+``/mosiv/surface_tracks``
 (the surface tracks alive at each frame set, kept by stamp and joined to the frame set of the
 same stamp: the fit's track loss) and ``/mosiv/particles`` (latched). Once it has the particles
 and ``window`` frames from the particles' frame on (with ``window`` 0: at least two frames and
@@ -53,9 +55,11 @@ from mosiv_ros.nodes.common import (
     LATCHED_QOS,
     STREAM_QOS,
     declare_config,
+    gripper_poses,
     guarded,
     lifted_from_msg,
     main_for,
+    world_gripper_poses,
 )
 from mosiv_ros.nodes.outputs import diagnostics_msg
 from mosiv_ros.nodes.reconstruction_node import TRACKS_TOPIC
@@ -105,6 +109,7 @@ class IdentifyNode(Node):
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
             guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
+        self.gripper = gripper_poses(self)
         self.create_timer(0.5, self._maybe_start)
         if self.config.loss.silhouette_weight > 0:
             self.get_logger().info("the topic graph carries no silhouettes: fitting the 3D loss")
@@ -196,8 +201,9 @@ class IdentifyNode(Node):
                 self.get_clock().now().nanoseconds))
             self.get_logger().info(f"{text}; time left in this phase {duration(left)}")
 
+        poses = world_gripper_poses(self, self.gripper)
         identification = identify_objects(frames, self.particles, self.scene, self.config,
-                                          progress=progress)
+                                          gripper_poses=poses, progress=progress)
         estimates = identification.estimates
         self.estimates_pub.publish(diagnostics_msg(estimates.statuses(), estimates.stamp_ns))
         self.published = True
@@ -224,6 +230,7 @@ class IdentifyNode(Node):
 
         try:
             result = LoopClosure(frames, self.particles, self.scene, self.config,
+                                 gripper_poses=world_gripper_poses(self, self.gripper),
                                  progress=progress).run()
         except (LoopError, SimulationError, ValueError) as error:
             self.get_logger().error(f"loop closure failed: {error}")

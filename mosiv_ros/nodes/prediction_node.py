@@ -2,7 +2,10 @@
 
 Subscribes to ``/mosiv/particles`` and ``/mosiv/material_estimates`` (both latched; or takes the
 estimates from its parameter ``estimates``, which identify_node's estimates file sets:
-``--params-file FILE``). With both, it rolls the core's ``Twin`` from the first observed frame to
+``--params-file FILE``), and to ``/gripper/pose`` with ``/tf_static`` (a declared gripper moves
+along the poses received when the twin is built, and holds its last pose past them; poses that
+arrive later are used once none came for ``GRIPPER_SETTLE_S``, with a new prediction). With both,
+it rolls the core's ``Twin`` from the first observed frame to
 ``horizon`` seconds past the fitted window and publishes, latched so that a planner joining
 later still gets them:
 
@@ -24,6 +27,8 @@ Every new estimate replaces the prediction. Estimates with ERROR status are not 
 
 from __future__ import annotations
 
+import time
+
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path
 from rclpy.node import Node
@@ -37,7 +42,15 @@ from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
-from mosiv_ros.nodes.common import LATCHED_QOS, declare_config, guarded, lifted_from_msg, main_for
+from mosiv_ros.nodes.common import (
+    LATCHED_QOS,
+    declare_config,
+    gripper_poses,
+    guarded,
+    lifted_from_msg,
+    main_for,
+    world_gripper_poses,
+)
 from mosiv_ros.nodes.outputs import markers_msg, path_msg, statuses_of
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.predict.twin import Twin
@@ -46,6 +59,8 @@ from mosiv_ros.sim.runtime import resolve_device
 
 NAME = "prediction_node"
 SUMMARY = "roll the identified digital twin forward and publish predicted object dynamics"
+GRIPPER_SETTLE_S = 0.5
+"""Seconds without a new gripper pose (or transform) before a prediction is redone with them."""
 
 
 class PredictionNode(Node):
@@ -66,6 +81,9 @@ class PredictionNode(Node):
         self.twin: Twin | None = None
         self.accepted: tuple[PredictionConfig, Estimates | None, WhatIf] | None = None
         self.redo = None
+        self.gripper = gripper_poses(self, self._on_gripper)
+        self.gripper_changed: float | None = None  # when poses last arrived after the twin was built
+        self.create_timer(GRIPPER_SETTLE_S / 2, self._gripper_settled)
         self.create_subscription(
             PointCloud2, "/mosiv/particles",
             guarded(self, "/mosiv/particles", lifted_from_msg, self._on_particles), LATCHED_QOS)
@@ -77,6 +95,17 @@ class PredictionNode(Node):
         self.add_post_set_parameters_callback(self._on_changed)
         if self.config.estimates:
             self._on_estimates(Estimates.from_yaml(self.config.estimates))
+
+    def _on_gripper(self) -> None:
+        if self.twin is not None and self.scene.gripper is not None:
+            self.gripper_changed = time.monotonic()
+
+    def _gripper_settled(self) -> None:
+        """Once no gripper pose came for GRIPPER_SETTLE_S, predict again with the poses received."""
+        if self.gripper_changed is None or time.monotonic() - self.gripper_changed < GRIPPER_SETTLE_S:
+            return
+        self.gripper_changed, self.twin = None, None
+        self._predict()
 
     def _on_particles(self, particles: LiftedParticles) -> None:
         self.particles, self.twin = particles, None
@@ -120,7 +149,8 @@ class PredictionNode(Node):
             return
         try:
             if self.twin is None:
-                self.twin = Twin(self.particles, self.estimates, self.scene, device=self.config.device)
+                self.twin = Twin(self.particles, self.estimates, self.scene, device=self.config.device,
+                                 gripper_poses=world_gripper_poses(self, self.gripper))
             if self.request:
                 future = self.twin.what_if(self.request, self.config.horizon, self.config.frame_rate)
             else:

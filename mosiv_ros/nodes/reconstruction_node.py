@@ -25,7 +25,6 @@ import threading
 import time
 
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from tf2_msgs.msg import TFMessage
 
@@ -43,7 +42,7 @@ from mosiv_ros.io.recording import Camera, FrameMatcher, FrameSet
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
-from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, declare_config, guarded, main_for
+from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, TF_STATIC_QOS, declare_config, guarded, main_for
 from mosiv_ros.recon import Reconstructor, SurfaceTracker
 
 NAME = "reconstruction_node"
@@ -53,9 +52,6 @@ IMAGE_TOPICS = {"rgb": "color/image_raw", "mask": "instance_mask", "depth": "dep
 MAX_UNCALIBRATED = 30
 """Frame sets kept while waiting for calibration; older ones are dropped with a warning."""
 BACKLOG_WARNING = 10
-TF_STATIC_QOS = QoSProfile(
-    depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
-)
 
 
 class ReconstructionNode(Node):

@@ -2,8 +2,9 @@
 
 ``Twin`` holds the lifted particles of the first observed frame, the identified parameters
 (``identify.estimates.Estimates``: material parameters, initial velocities, ground and effect
-parameters) and the scene declaration, and simulates from that first frame through the observed
-window and on past it. Requests can change the initial velocities or any object's parameters
+parameters), the scene declaration and the declared gripper's poses (``gripper_poses``: the
+recorded ones, held at the last past it), and simulates from that first frame through the
+observed window and on past it. Requests can change the initial velocities or any object's parameters
 (swapped materials) before the rollout (``what_if``, with a ``request.WhatIf``).
 
 What it is for: ``Twin.predict(seconds)`` -> ``Prediction`` (per-frame particle positions and
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,7 @@ from mosiv_ros.io.scene import Scene
 from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.predict.request import WhatIf
 from mosiv_ros.sim import WALL_RETRIES, ObjectModel, SimConfig, Simulator, domain_around, reaches_walls
-from mosiv_ros.simulation import OFFSET, effects_of, ground_of, to_sim_particles
+from mosiv_ros.simulation import OFFSET, colliders_of, effects_of, ground_of, to_sim_particles
 
 _LOG = logging.getLogger(__name__)
 
@@ -86,8 +87,10 @@ class Twin:
     """The identified scene, ready to roll forward (see the module docstring)."""
 
     def __init__(self, lifted: LiftedParticles, estimates: Estimates, scene: Scene,
-                 device: str = "auto", margin: float = PREDICTION_MARGIN) -> None:
+                 device: str = "auto", margin: float = PREDICTION_MARGIN,
+                 gripper_poses: Sequence[tuple[int, np.ndarray]] = ()) -> None:
         self.lifted, self.estimates = lifted, estimates
+        self.colliders = colliders_of(scene, gripper_poses, estimates.stamp_ns)
         by_id = {o.id: o for o in estimates.objects}
         offsets = {i: o.params[OFFSET] for i, o in by_id.items() if OFFSET in o.params}
         particles, ids = to_sim_particles(lifted, offsets)
@@ -161,7 +164,8 @@ class Twin:
         dx = 2.0 * self.lifted.lattice_volume ** (1 / 3)
         lo, hi = domain_around(points, dx, self.margin, floor=ground.height if ground else None)
         self.config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=self.estimates.frame_dt or 1 / 30,
-                                ground=ground, effects=effects_of(self.scene, self.objects), device=self.device)
+                                ground=ground, effects=effects_of(self.scene, self.objects),
+                                colliders=self.colliders, device=self.device)
         return Simulator(self.objects, self.particles, self.config)
 
     def _widen(self, visited: np.ndarray) -> None:
