@@ -272,14 +272,16 @@ def log_cloud(node: Node, topic: str, cloud: Any) -> None:
     )
 
 
-def gripper_poses(node: Node, on_change: Callable[[], None] | None = None) -> PoseStream:
+def gripper_poses(node: Node, on_change: Callable[[], None] | None = None,
+                  transforms: StaticTransforms | None = None) -> PoseStream:
     """Subscribe ``node`` to ``/gripper/pose`` and ``/tf_static``; the poses as they arrive.
 
     The poses keep their frames until asked for in the world (``PoseStream.world``), so either
-    topic may come first; ``on_change`` is called after each pose or transform message. A
+    topic may come first; ``on_change`` is called after each pose or transform message. A node
+    that keeps ``/tf_static`` itself passes its ``transforms`` (no second subscription). A
     malformed message is logged and dropped (``guarded``).
     """
-    stream = PoseStream(StaticTransforms())
+    stream = PoseStream(transforms if transforms is not None else StaticTransforms())
 
     def on_transforms(transforms: list) -> None:
         for parent, child, T in transforms:
@@ -292,10 +294,11 @@ def gripper_poses(node: Node, on_change: Callable[[], None] | None = None) -> Po
         if on_change is not None:
             on_change()
 
-    node.create_subscription(
-        TFMessage, "/tf_static",
-        guarded(node, "/tf_static", lambda msg: [transform_from_msg(t) for t in msg.transforms],
-                on_transforms), TF_STATIC_QOS)
+    if transforms is None:
+        node.create_subscription(
+            TFMessage, "/tf_static",
+            guarded(node, "/tf_static", lambda msg: [transform_from_msg(t) for t in msg.transforms],
+                    on_transforms), TF_STATIC_QOS)
     node.create_subscription(
         PoseStamped, GRIPPER_POSE_TOPIC,
         guarded(node, GRIPPER_POSE_TOPIC,

@@ -1,7 +1,9 @@
 """reconstruction_node: camera topics in, per-object observed geometry per frame out (stage 1).
 
 Subscribes to every camera's color image, instance mask, optional depth and CameraInfo (the
-sensor-data QoS) and to ``/tf_static``; assembles each camera's frames and groups the cameras'
+sensor-data QoS), to ``/tf_static`` and, for a scene that declares a gripper, to ``/gripper/pose``
+(the gripper at each set's stamp, from the poses received so far, hides what lies behind it:
+``recon.gripper``); assembles each camera's frames and groups the cameras'
 frames by stamp with the core's matcher. Each frame set goes to the core's ``Reconstructor``;
 the result is published on ``/mosiv/observed_objects``: a PointCloud2 in ``world`` with fields
 x, y, z (float32), object_id (uint16), voxel_size (float32: the edge of the voxel a point is
@@ -42,8 +44,17 @@ from mosiv_ros.io.recording import Camera, FrameMatcher, FrameSet
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
-from mosiv_ros.nodes.common import SENSOR_QOS, STREAM_QOS, TF_STATIC_QOS, declare_config, guarded, main_for
+from mosiv_ros.nodes.common import (
+    SENSOR_QOS,
+    STREAM_QOS,
+    TF_STATIC_QOS,
+    declare_config,
+    gripper_poses,
+    guarded,
+    main_for,
+)
 from mosiv_ros.recon import Reconstructor, SurfaceTracker
+from mosiv_ros.recon.gripper import gripper_at
 
 NAME = "reconstruction_node"
 SUMMARY = "group multi-camera frames by stamp and reconstruct each object's geometry per frame"
@@ -82,6 +93,7 @@ class ReconstructionNode(Node):
         self.last_frame_time = time.monotonic()
         self.create_timer(0.1, self._flush_when_idle)
         self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, TF_STATIC_QOS)
+        self.gripper = gripper_poses(self, transforms=self.transforms)
         if self.config.cameras:
             self._add_cameras(self.config.cameras)
         else:
@@ -219,7 +231,10 @@ class ReconstructionNode(Node):
 
     def _reconstruct(self, frame_set: FrameSet) -> None:
         try:
-            observed = self._reconstructor(frame_set).reconstruct(frame_set)
+            pose = None
+            if self.scene is not None and self.scene.gripper is not None:
+                pose = gripper_at(self.gripper.world()[0], frame_set.stamp_ns)
+            observed = self._reconstructor(frame_set).reconstruct(frame_set, pose)
         except ValueError as error:
             self.get_logger().error(f"stamp {frame_set.stamp_ns} ns: not reconstructed: {error}")
             return

@@ -7,6 +7,9 @@ background pixel, or, with depth, lies in front of the measured surface by more 
 tolerance (free space, whatever the label). A pixel of *another* object is unknown, not empty: it
 may hide this one. Pixels outside an image are unknown too. Below a known ground plane nothing is
 kept (no camera can see there, so carving alone would keep the object's shadow in the ground).
+A known occluder the masks leave out (the declared gripper, ``recon.gripper``; ``View.occluder``)
+makes the background pixels where it lies in front of a voxel unknown too, and the space it
+fills (``inside``) empty.
 What it is not for: separating objects from each other or extracting surfaces (``reconstruct``).
 
 Coarse to fine: cells of 2^l voxels are tested conservatively, survivors split into 8, down to
@@ -20,7 +23,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,17 +78,19 @@ def carve_object(
     min_views: int,
     depth_tolerance: float,
     ground: tuple[np.ndarray, float] | None = None,
+    inside: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Voxel indices (N, 3) int64 occupied by ``object_id`` (see the module docstring's rules).
 
-    ``ground`` (unit normal n, height h): only voxels with n . centre >= h are kept.
+    ``ground`` (unit normal n, height h): only voxels with n . centre >= h are kept. ``inside``:
+    which world points an occluder fills (none of its voxels is kept).
     """
     shape = np.array(lattice.shape)
     level = max(0, math.ceil(math.log2(max(shape.max() / COARSEST_CELLS, 1.0))))
     top = -(-shape // (1 << level))
     cells = np.stack(np.meshgrid(*[np.arange(n) for n in top], indexing="ij"), -1).reshape(-1, 3)
     while level > 0:
-        keep = _keep_cells(views, object_id, lattice, cells, level, min_views)
+        keep = _keep_cells(views, object_id, lattice, cells, level, min_views, depth_tolerance)
         if ground is not None:
             radius = lattice.voxel_size * (1 << level) * math.sqrt(3.0) / 2.0
             keep &= lattice.centres(cells, level) @ ground[0] + radius >= ground[1]
@@ -96,11 +101,13 @@ def carve_object(
     cells = cells[np.all(cells < shape, axis=1)]
     if ground is not None:
         cells = cells[lattice.centres(cells) @ ground[0] >= ground[1]]
+    if inside is not None:
+        cells = cells[~inside(lattice.centres(cells))]
     return cells[_keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance)]
 
 
 def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: np.ndarray,
-                level: int, min_views: int) -> np.ndarray:
+                level: int, min_views: int, depth_tolerance: float) -> np.ndarray:
     """Conservative test of cells of 2^level voxels: False only where the voxels surely fail."""
     half = lattice.voxel_size * (1 << level) / 2.0
     corners = (lattice.centres(cells, level)[:, None, :] + half * _CORNERS[None]).reshape(-1, 3)
@@ -120,7 +127,10 @@ def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: 
         touches = straddles | ((c1 >= 0) & (r1 >= 0) & (c0 < view.width) & (r0 < view.height))
         box = (np.clip(r0, 0, view.height - 1), np.clip(r1, 0, view.height - 1),
                np.clip(c0, 0, view.width - 1), np.clip(c1, 0, view.width - 1))
-        carved |= within & (view.count_any(*box) == 0)
+        empty = within & (view.count_any(*box) == 0)
+        if view.occluder is not None:  # nor a known occluder in front of its farthest corner
+            empty &= view.nearest_occluder(*box) >= z.reshape(-1, 8).max(axis=1) - depth_tolerance
+        carved |= empty
         seen += touches
         # The object may be there: its pixels are in the footprint, or part of the footprint
         # lies outside the image, or the cell reaches the camera plane.
@@ -139,7 +149,10 @@ def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels
         u, v, z = view.project(centres)
         row, col, inside = view.pixels(u, v)
         label = view.labels[row, col]
-        empty |= inside & (label == 0)
+        background = inside & (label == 0)
+        if view.occluder is not None:  # a known occluder in front hides the voxel
+            background &= ~(view.occluder[row, col] < z - depth_tolerance)
+        empty |= background
         if view.depth is not None:
             depth = view.depth[row, col]
             with np.errstate(invalid="ignore"):

@@ -12,7 +12,8 @@ Per frame set: each object is carved on its own (``carving``); a voxel that two 
 both keep (they hide each other, or the masks cannot tell them apart) goes to the object more
 views show there (first counting, with depth, only the views whose measured surface passes
 through the voxel), ties to the object whose own evidence is nearer (its uncontested voxels and
-depth returns). Surface points are the
+depth returns). A declared gripper at its pose (``gripper``) hides what lies behind it where
+the masks leave it as background, and its own space stays empty. Surface points are the
 object's depth returns that agree with its volume when the recording has depth, otherwise the
 centres of its boundary voxels. Each surface point has a colour: its pixel's, for a depth return;
 for a boundary voxel, the mean colour of the pixels whose rays first enter the object's voxels in
@@ -40,6 +41,7 @@ from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.recording import Camera, FrameSet, PointCloud, Recording, match_frames
 from mosiv_ros.io.scene import Scene
 from mosiv_ros.recon.carving import Lattice, carve_object
+from mosiv_ros.recon.gripper import GripperShape, gripper_at
 from mosiv_ros.recon.tracks import SurfaceTracker, TrackPoints
 from mosiv_ros.recon.views import View, look_at_box
 
@@ -170,6 +172,7 @@ class Reconstructor:
         self.scene = scene if scene is not None and scene.objects else None
         self.tracker = tracker
         self.ground = ground_plane(scene)
+        self.gripper = scene.gripper if scene is not None else None
         if config.workspace:
             if len(config.workspace) != 6:
                 raise ValueError(f"workspace needs 6 values [xmin, ymin, zmin, xmax, ymax, zmax], "
@@ -197,8 +200,13 @@ class Reconstructor:
                     f"slower, not finer; consider voxel_size >= {footprint / 2 * 1e3:.0f} mm")
         return notes
 
-    def reconstruct(self, frame_set: FrameSet) -> ObservedFrame:
-        """Every object of one frame set (see the module docstring)."""
+    def reconstruct(self, frame_set: FrameSet, gripper_pose: np.ndarray | None = None) -> ObservedFrame:
+        """Every object of one frame set (see the module docstring).
+
+        ``gripper_pose``: T_world_gripper of the scene's declared gripper at the set's stamp
+        (``recon.gripper``: it hides what lies behind it and fills its own space); ignored
+        without a declared gripper.
+        """
         start = time.perf_counter()
         where = f"stamp {frame_set.stamp_ns} ns"
         warnings: list[str] = []
@@ -212,6 +220,12 @@ class Reconstructor:
         views = [View(self.cameras[name], frame, mask_filter=self.config.mask_filter,
                       use_depth=self.config.use_depth)
                  for name, frame in sorted(frame_set.frames.items())]
+        inside = None
+        if self.gripper is not None and gripper_pose is not None:
+            gripper = GripperShape(self.gripper, gripper_pose)
+            for view in views:
+                view.hide_behind(gripper.depth(view))
+            inside = gripper.contains
         min_views = self.config.min_views or len(views)
         carved: dict[int, np.ndarray] = {}
         seen_by: dict[int, tuple[str, ...]] = {}
@@ -231,7 +245,7 @@ class Reconstructor:
                                 f"of {', '.join(cut)}; its part beyond the border {beyond}")
             carved[object_id] = carve_object(views, object_id, self.lattice, min_views=min_views,
                                              depth_tolerance=self.config.depth_tolerance,
-                                             ground=self.ground)
+                                             ground=self.ground, inside=inside)
         surfaces, colours = {}, {}
         for object_id in carved:
             points, rgb = zip(*(v.surface_points(object_id) for v in views), strict=True)
@@ -417,7 +431,7 @@ def iter_reconstruct(recording: Recording, config: ReconstructionConfig,
         _LOG.warning(message)
     frame_sets = match_frames(recording.cameras, int(round(config.sync_tolerance * 1e9)))
     for index, frame_set in enumerate(frame_sets):
-        observed = reconstructor.reconstruct(frame_set)
+        observed = reconstructor.reconstruct(frame_set, gripper_at(recording.gripper_poses, frame_set.stamp_ns))
         for message in observed.warnings:
             _LOG.warning(message)
         _LOG.info("frame %d/%d: %s", index + 1, len(frame_sets), observed.summary())

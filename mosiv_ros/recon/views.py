@@ -75,6 +75,9 @@ class View:
         self.ids = frozenset(int(i) for i in np.unique(self.labels) if i != 0)
         self._any = _summed_area(self.labels != 0)
         self._object: dict[int, np.ndarray] = {}
+        self.occluder: np.ndarray | None = None
+        """(H, W) depth of a known unlabelled occluder in front of each pixel (``hide_behind``)."""
+        self._occluder_minima: np.ndarray | None = None
 
     def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(u, v, z) of world points (N, 3), each (N,).
@@ -116,6 +119,33 @@ class View:
         if object_id not in self._object:
             self._object[object_id] = _summed_area(self.labels == object_id)
         return _rectangles(self._object[object_id], r0, r1, c0, c1)
+
+    def hide_behind(self, depth: np.ndarray) -> None:
+        """Mark where a known occluder that the masks leave out (the declared gripper) lies.
+
+        ``depth`` (H, W) is its depth at each pixel, inf where it is not: a background pixel
+        hides what lies behind it there instead of carving it (``carving``).
+        """
+        self.occluder = np.asarray(depth, dtype=np.float32)
+        self._occluder_minima = None
+
+    def nearest_occluder(self, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
+                         c1: np.ndarray) -> np.ndarray:
+        """The least ``occluder`` depth in the rectangles (as ``count_any``; inf without one).
+
+        Exact minima from a sparse table: the least of four blocks of power-of-two sides that
+        cover the rectangle.
+        """
+        if self.occluder is None:
+            return np.full(np.shape(r0), np.inf)
+        if self._occluder_minima is None:
+            self._occluder_minima = _sparse_minima(self.occluder)
+        table = self._occluder_minima
+        a = np.log2(r1 - r0 + 1).astype(np.intp)
+        b = np.log2(c1 - c0 + 1).astype(np.intp)
+        r_end, c_end = r1 - (1 << a) + 1, c1 - (1 << b) + 1
+        return np.minimum(np.minimum(table[a, b, r0, c0], table[a, b, r_end, c0]),
+                          np.minimum(table[a, b, r0, c_end], table[a, b, r_end, c_end]))
 
     def touches_border(self, object_id: int) -> bool:
         """Whether the object's silhouette reaches the image border (it may extend beyond it)."""
@@ -184,6 +214,27 @@ class View:
             going = ~hit & (t < leave[todo])
             todo, t = todo[going], t[going]
         return hits
+
+
+def _sparse_minima(image: np.ndarray) -> np.ndarray:
+    """Range minima of ``image``: (A, B, H, W), [a, b, r, c] the least over a block.
+
+    The block is rows r..r + 2^a - 1 and columns c..c + 2^b - 1, clipped at the image's edges.
+    """
+    height, width = image.shape
+    rows = [image]
+    for a in range(1, int(np.log2(height)) + 1):
+        below = np.full_like(image, np.inf)
+        below[:height - (1 << (a - 1))] = rows[-1][1 << (a - 1):]
+        rows.append(np.minimum(rows[-1], below))
+    table = np.empty((len(rows), int(np.log2(width)) + 1, height, width), dtype=image.dtype)
+    for a, row in enumerate(rows):
+        table[a, 0] = row
+        for b in range(1, table.shape[1]):
+            right = np.full_like(image, np.inf)
+            right[:, :width - (1 << (b - 1))] = table[a, b - 1][:, 1 << (b - 1):]
+            table[a, b] = np.minimum(table[a, b - 1], right)
+    return table
 
 
 def _rectangles(table: np.ndarray, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
