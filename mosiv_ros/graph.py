@@ -35,6 +35,10 @@ PACKAGE = "mosiv_ros"
 LOG = logging.getLogger(__name__)
 READY_TIMEOUT = 60.0
 """Seconds a node may take to start (import, kernel cache, DDS discovery) before it is an error."""
+REPLAY_LINGER = 10.0
+"""Seconds the graph's replay keeps serving its latched topics (``/tf_static``, ``/gripper/pose``)
+after the bag's last message, for a node that subscribes late (identify_node and prediction_node
+take the gripper's poses from it)."""
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 """Signals on which the runner stops its nodes before it ends."""
 
@@ -153,7 +157,7 @@ def graph_nodes(bag: Any, rate: Any, scene: Any,
     # subscriber (reconstruction_node subscribes once it sees them), as long as a node may take to
     # start; the pipeline's own topics are transient_local, so a node may come up later
     specs.append(NodeSpec(REPLAY_NODE, {"bag": bag, "rate": rate, "wait_for_subscribers": 1,
-                                        "wait_timeout": READY_TIMEOUT}))
+                                        "wait_timeout": READY_TIMEOUT, "linger": REPLAY_LINGER}))
     return specs
 
 

@@ -3,6 +3,8 @@ and what lifting_node publishes is what its consumers read."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -110,6 +112,28 @@ def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stop
         assert set(np.unique(got.object_id).tolist()) == {1, 2, 3}
         np.testing.assert_array_equal(got.xyz, want.xyz)
 
+
+
+@pytest.mark.slow
+def test_reconstruction_node_lets_the_gripper_on_gripper_pose_hide_the_cube_as_the_core_does(listener):
+    # bags/pressed_cube: a plate the masks leave out presses the cube; the node places it from
+    # /gripper/pose and /tf_static, and its clouds are the in-process core's, which uses the poses
+    bag = Path(__file__).resolve().parents[1] / "bags" / "pressed_cube"
+    listener.subscribe(PointCloud2, "/mosiv/observed_objects", STREAM)
+    with Graph([NodeSpec("reconstruction_node", {"scene": str(bag)})], sink=None) as graph:
+        node = graph.nodes["reconstruction_node"]
+        node.wait_for_line("reconstruction_node ready", timeout=60)
+        assert listener.wait_for(lambda: listener.node.count_publishers("/mosiv/observed_objects") > 0, 10)
+        replay_params = {"bag": str(bag), "rate": 1.0, "wait_for_subscribers": 1, "linger": 0.5}
+        with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
+            assert replay.nodes["bag_replay_node"].process.wait(60) == 0
+        recording = read_recording(bag)
+        frames = reconstruct_recording(recording, ReconstructionConfig())
+        assert listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == len(frames), 60)
+    for msg, frame in zip(listener.received["/mosiv/observed_objects"], frames, strict=True):
+        got, want = pointcloud_from_msg(msg), frame.to_cloud()
+        np.testing.assert_array_equal(got.xyz, want.xyz)
+    assert frames[0].objects[1].occupancy[:, 2].max() > 0.05  # the cube's top, under the plate
 
 
 @pytest.mark.slow

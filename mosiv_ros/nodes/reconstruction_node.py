@@ -2,8 +2,8 @@
 
 Subscribes to every camera's color image, instance mask, optional depth and CameraInfo (the
 sensor-data QoS), to ``/tf_static`` and, for a scene that declares a gripper, to ``/gripper/pose``
-(the gripper at each set's stamp, from the poses received so far, hides what lies behind it:
-``recon.gripper``); assembles each camera's frames and groups the cameras'
+(the gripper at each set's stamp hides what lies behind it, ``recon.gripper``; a set waits up to
+``partial_set_timeout`` for the pose at its stamp); assembles each camera's frames and groups the cameras'
 frames by stamp with the core's matcher. Each frame set goes to the core's ``Reconstructor``;
 the result is published on ``/mosiv/observed_objects``: a PointCloud2 in ``world`` with fields
 x, y, z (float32), object_id (uint16), voxel_size (float32: the edge of the voxel a point is
@@ -231,10 +231,7 @@ class ReconstructionNode(Node):
 
     def _reconstruct(self, frame_set: FrameSet) -> None:
         try:
-            pose = None
-            if self.scene is not None and self.scene.gripper is not None:
-                pose = gripper_at(self.gripper.world()[0], frame_set.stamp_ns)
-            observed = self._reconstructor(frame_set).reconstruct(frame_set, pose)
+            observed = self._reconstructor(frame_set).reconstruct(frame_set, self._gripper_pose(frame_set.stamp_ns))
         except ValueError as error:
             self.get_logger().error(f"stamp {frame_set.stamp_ns} ns: not reconstructed: {error}")
             return
@@ -249,6 +246,21 @@ class ReconstructionNode(Node):
         self.get_logger().info(
             f"published observed objects {self.published} (stamp {frame_set.stamp_ns} ns): "
             f"{observed.summary()}; mean {self.seconds / self.published * 1e3:.0f} ms per set")
+
+    def _gripper_pose(self, stamp_ns: int):
+        """The declared gripper's pose at ``stamp_ns`` (None without one, or without poses).
+
+        Waits (in the worker thread) up to ``partial_set_timeout`` for a pose at or after the
+        stamp, as a set waits for a late camera; past that, the poses so far (the last held).
+        """
+        if self.scene is None or self.scene.gripper is None:
+            return None
+        deadline = time.monotonic() + self.config.partial_set_timeout
+        while True:
+            poses = self.gripper.world()[0]
+            if (poses and poses[-1][0] >= stamp_ns) or time.monotonic() >= deadline:
+                return gripper_at(poses, stamp_ns)
+            time.sleep(0.01)
 
     def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
         return [name for name in sorted(frame_set.frames)
