@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 FPS = 10.0
@@ -95,3 +97,17 @@ FAST_PARAMS = {
     "prediction_node": {"ros__parameters": {"horizon": 0.5}},
 }
 """Node parameters for a fit of a few seconds: the plumbing, not the accuracy, is under test."""
+
+
+def gripper_sweep(scene, centre, stamp_ns: int):
+    """``scene`` with a declared 3 cm sphere gripper, and its poses sweeping through ``centre``.
+
+    Along +x from -15 to +15 cm in 0.3 s from ``stamp_ns``: (scene, [(stamp_ns, T_world)]).
+    """
+    swept = dataclasses.replace(scene, gripper={"shape": "sphere", "radius": 0.03})
+    poses = []
+    for k, dx in enumerate(np.linspace(-0.15, 0.15, 4)):
+        T = np.eye(4)
+        T[:3, 3] = np.asarray(centre) + [dx, 0.0, 0.0]
+        poses.append((stamp_ns + round(k * 0.1e9), T))
+    return swept, poses

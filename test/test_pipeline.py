@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -15,11 +14,12 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Path as PathMsg
 from sensor_msgs.msg import PointCloud2
+from synth_scenes import gripper_sweep
 from test_nodes_process import LATCHED, Listener
 
 from mosiv_ros.config import IdentifyConfig, from_mapping
 from mosiv_ros.evaluate.twin import PER_DENSITY, SCENE, parameter_errors
-from mosiv_ros.graph import Graph, NodeSpec
+from mosiv_ros.graph import REPLAY_LINGER, Graph, NodeSpec
 from mosiv_ros.identify.estimates import ERROR, OK, WARN, Estimates, ObjectEstimate
 from mosiv_ros.identify.problem import ProblemError, frame_steps
 from mosiv_ros.identify.run import identify_objects
@@ -96,14 +96,20 @@ def test_five_nodes_give_a_late_subscriber_latched_estimates_and_future_predicti
 
 @pytest.mark.slow
 def test_identify_node_fits_with_the_gripper_the_bag_replays_on_gripper_pose(synth_pair_bag, fast_params):
+    # /gripper/pose lives only as long as the replay, and a subscriber matches its publisher only
+    # after DDS discovery: the replay starts once identify_node is up and keeps serving for
+    # REPLAY_LINGER seconds, as in mosiv graph
     bag = str(synth_pair_bag)
     specs = [NodeSpec("reconstruction_node", {"scene": bag}), NodeSpec("lifting_node", {"scene": bag}),
-             NodeSpec("identify_node", {"scene": bag, "window": 4, "output_yaml": ""}),
-             NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1,
-                                          "wait_timeout": 60.0})]
+             NodeSpec("identify_node", {"scene": bag, "window": 4, "output_yaml": ""})]
     expected = len(read_recording(synth_pair_bag).gripper_poses)
     with Graph(specs, params_file=fast_params, sink=None) as graph:
-        line = graph.nodes["identify_node"].wait_for_line("gripper poses in the world", 300)
+        for name in ("reconstruction_node", "identify_node"):
+            graph.nodes[name].wait_for_line(f"{name} ready", 120)
+        replay = NodeSpec("bag_replay_node", {"bag": bag, "rate": 1.0, "wait_for_subscribers": 1,
+                                              "wait_timeout": 60.0, "linger": REPLAY_LINGER})
+        with Graph([replay], sink=None):
+            line = graph.nodes["identify_node"].wait_for_line("gripper poses in the world", 300)
         graph.nodes["identify_node"].wait_for_line("identification done", 300)
         lines = graph.nodes["identify_node"].lines
     assert f"{expected} gripper poses" in line and expected > 0
@@ -290,13 +296,8 @@ def test_twin_moves_the_declared_gripper_along_its_poses_and_it_pushes_the_objec
     prepared = prepare(drop_bag, RunConfig())
     estimates = Estimates([ObjectEstimate(1, "jelly", "elastic", {"E": 2e4, "nu": 0.3})],
                           stamp_ns=prepared.frames[0].stamp_ns, frames=6, frame_dt=0.1)
-    scene = dataclasses.replace(prepared.recording.scene, gripper={"shape": "sphere", "radius": 0.03})
     centre = prepared.lifted.x.mean(axis=0)
-    poses = []
-    for k, dx in enumerate(np.linspace(-0.15, 0.15, 4)):
-        T = np.eye(4)
-        T[:3, 3] = centre + [dx, 0.0, 0.0]
-        poses.append((estimates.stamp_ns + round(k * 0.1e9), T))
+    scene, poses = gripper_sweep(prepared.recording.scene, centre, estimates.stamp_ns)
     pushed = Twin(prepared.lifted, estimates, scene, device="cpu", gripper_poses=poses).predict(0.5)
     with caplog.at_level(logging.WARNING, logger="mosiv_ros.simulation"):
         alone = Twin(prepared.lifted, estimates, scene, device="cpu").predict(0.5)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import signal
@@ -19,6 +18,7 @@ from rclpy.context import Context
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import PointCloud2
+from synth_scenes import gripper_sweep
 from test_io_scene import alias_bomb
 from test_nodes_process import LATCHED, Listener
 from tf2_msgs.msg import TFMessage
@@ -187,17 +187,12 @@ def test_prediction_node_moves_the_declared_gripper_along_gripper_pose_placed_by
     # /tf_static places in the world (sent after the poses), as a robot driver would publish them
     estimates = _estimates(prepared.frames[0].stamp_ns)
     path = estimates.write(tmp_path / "material_estimates.yaml")
-    scene = dataclasses.replace(prepared.recording.scene, gripper={"shape": "sphere", "radius": 0.03})
+    scene, world_poses = gripper_sweep(prepared.recording.scene, prepared.lifted.x.mean(axis=0),
+                                       estimates.stamp_ns)
     scene_file = tmp_path / "scene.yaml"
     scene_file.write_text(scene_to_yaml(scene))
     base = np.eye(4)
     base[:3, 3] = [0.5, -0.2, 0.0]  # T_world_base
-    centre = prepared.lifted.x.mean(axis=0)
-    world_poses = []
-    for k, dx in enumerate(np.linspace(-0.15, 0.15, 4)):
-        T = np.eye(4)
-        T[:3, 3] = centre + [dx, 0.0, 0.0]
-        world_poses.append((estimates.stamp_ns + round(k * 0.1e9), T))
     listener = Listener("test_gripper_driver")
     try:
         _, particles = _latch_particles(listener, prepared)

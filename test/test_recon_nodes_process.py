@@ -88,22 +88,30 @@ def test_replaying_a_bag_through_the_nodes_gives_the_in_process_clouds(tmp_path,
         np.testing.assert_array_equal(got.fields[name], values, err_msg=name)
 
 
-@pytest.mark.slow
-def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stops_it(tmp_path, listener):
-    recording = sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72)
-    recording.cameras["cam2"].frames = recording.cameras["cam2"].frames[:2]
-    bag = write_recording(recording, tmp_path / "lossy")
+def _replayed_through_reconstruction(listener, bag, params: dict, count: int) -> tuple[bool, list[str]]:
+    """Replay ``bag`` into a reconstruction_node (``params``) until ``count`` observed clouds came.
+
+    (Whether they came, the node's log lines); the node must still be running at the end.
+    """
     listener.subscribe(PointCloud2, "/mosiv/observed_objects", STREAM)
-    with Graph([NodeSpec("reconstruction_node", {"scene": str(bag), **RECON})], sink=None) as graph:
+    with Graph([NodeSpec("reconstruction_node", {"scene": str(bag), **params})], sink=None) as graph:
         node = graph.nodes["reconstruction_node"]
         node.wait_for_line("reconstruction_node ready", timeout=60)
         assert listener.wait_for(lambda: listener.node.count_publishers("/mosiv/observed_objects") > 0, 10)
         replay_params = {"bag": str(bag), "rate": 1.0, "wait_for_subscribers": 1, "linger": 0.5}
         with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
             assert replay.nodes["bag_replay_node"].process.wait(60) == 0
-        received = listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == FRAMES, 30)
+        received = listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == count, 60)
         assert node.process.poll() is None
-        lines = list(node.lines)
+        return received, list(node.lines)
+
+
+@pytest.mark.slow
+def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stops_it(tmp_path, listener):
+    recording = sphere_recording(touching_pair(), n_frames=FRAMES, n_cameras=3, width=96, height=72)
+    recording.cameras["cam2"].frames = recording.cameras["cam2"].frames[:2]
+    bag = write_recording(recording, tmp_path / "lossy")
+    received, lines = _replayed_through_reconstruction(listener, bag, RECON, FRAMES)
     assert received, "\n".join(lines[-30:])
     assert sum("no frame from camera(s) cam2" in line for line in lines) == FRAMES - 2
     frames = reconstruct_recording(read_recording(bag), ReconstructionConfig(**RECON))
@@ -119,17 +127,9 @@ def test_reconstruction_node_lets_the_gripper_on_gripper_pose_hide_the_cube_as_t
     # bags/pressed_cube: a plate the masks leave out presses the cube; the node places it from
     # /gripper/pose and /tf_static, and its clouds are the in-process core's, which uses the poses
     bag = Path(__file__).resolve().parents[1] / "bags" / "pressed_cube"
-    listener.subscribe(PointCloud2, "/mosiv/observed_objects", STREAM)
-    with Graph([NodeSpec("reconstruction_node", {"scene": str(bag)})], sink=None) as graph:
-        node = graph.nodes["reconstruction_node"]
-        node.wait_for_line("reconstruction_node ready", timeout=60)
-        assert listener.wait_for(lambda: listener.node.count_publishers("/mosiv/observed_objects") > 0, 10)
-        replay_params = {"bag": str(bag), "rate": 1.0, "wait_for_subscribers": 1, "linger": 0.5}
-        with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
-            assert replay.nodes["bag_replay_node"].process.wait(60) == 0
-        recording = read_recording(bag)
-        frames = reconstruct_recording(recording, ReconstructionConfig())
-        assert listener.wait_for(lambda: len(listener.received["/mosiv/observed_objects"]) == len(frames), 60)
+    frames = reconstruct_recording(read_recording(bag), ReconstructionConfig())
+    received, lines = _replayed_through_reconstruction(listener, bag, {}, len(frames))
+    assert received, "\n".join(lines[-30:])
     for msg, frame in zip(listener.received["/mosiv/observed_objects"], frames, strict=True):
         got, want = pointcloud_from_msg(msg), frame.to_cloud()
         np.testing.assert_array_equal(got.xyz, want.xyz)

@@ -94,6 +94,7 @@ class ReconstructionNode(Node):
         self.create_timer(0.1, self._flush_when_idle)
         self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, TF_STATIC_QOS)
         self.gripper = gripper_poses(self, transforms=self.transforms)
+        self.warned_no_gripper = False
         if self.config.cameras:
             self._add_cameras(self.config.cameras)
         else:
@@ -259,8 +260,14 @@ class ReconstructionNode(Node):
         while True:
             poses = self.gripper.world()[0]
             if (poses and poses[-1][0] >= stamp_ns) or time.monotonic() >= deadline:
-                return gripper_at(poses, stamp_ns)
+                break
             time.sleep(0.01)
+        if not poses and not self.warned_no_gripper:
+            self.warned_no_gripper = True
+            self.get_logger().warning(
+                f"stamp {stamp_ns} ns: the scene declares a gripper but no pose of it has come on "
+                "/gripper/pose: its pixels carve what lies behind it until one does")
+        return gripper_at(poses, stamp_ns)
 
     def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
         return [name for name in sorted(frame_set.frames)
