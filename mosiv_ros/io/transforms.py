@@ -64,11 +64,7 @@ class PoseStream:
 
     def world(self) -> tuple[list[tuple[int, np.ndarray]], list[str]]:
         """(stamp_ns, T_world_pose) in stamp order, and the frames no transforms reach yet."""
-        poses, unreached = [], set()
-        for stamp, (frame, T) in sorted(self.received.items()):
-            T_world_frame = self.transforms.to_world(frame)
-            if T_world_frame is None:
-                unreached.add(frame)
-            else:
-                poses.append((stamp, T_world_frame @ T))
-        return poses, sorted(unreached)
+        received = sorted(list(self.received.items()))  # a snapshot: add() may run meanwhile
+        placed = {frame: self.transforms.to_world(frame) for frame in {frame for _, (frame, _) in received}}
+        poses = [(stamp, placed[frame] @ T) for stamp, (frame, T) in received if placed[frame] is not None]
+        return poses, sorted(frame for frame, T in placed.items() if T is None)
