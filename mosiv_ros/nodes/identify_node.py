@@ -9,7 +9,9 @@ and ``window`` frames from the particles' frame on (with ``window`` 0: at least 
 ``idle_timeout`` seconds without a new one; with a window that the stream never fills: three
 times that), and, while a node publishes surface tracks, once each of those frames has its tracks
 or no track cloud came for ``idle_timeout`` seconds (tracks and frame sets travel on two topics,
-so either may arrive first; a lost track cloud delays the fit by at most three times that), it
+so either may arrive first; a lost track cloud delays the fit by at most three times that), and,
+for a scene that declares a gripper, once its poses reach the window's last stamp (at most three
+times ``idle_timeout`` after the window is complete: a late DDS match, or a stream without them), it
 runs the core's ``identify_objects`` in a worker thread (an object whose family
 the scene leaves out gets one of ``families``, chosen by held-out error first), reporting
 progress on ``/diagnostics`` and in its log, then publishes ``/mosiv/material_estimates``
@@ -151,6 +153,10 @@ class IdentifyNode(Node):
         if (tracked < len(frames) and self.count_publishers(TRACKS_TOPIC) and now - self.ready <= 3 * idle
                 and now - max(self.ready, self.last_tracks) <= idle):
             return  # the window's tracks may still be on their way
+        if self.scene.gripper is not None and now - self.ready <= 3 * idle:
+            poses = self.gripper.world()[0]
+            if not poses or poses[-1][0] < frames[-1].stamp_ns:
+                return  # the gripper's poses over the window may still be on their way
         if short:
             self.get_logger().warning(f"the stream went quiet after {len(frames)} of the {window} "
                                       "frames of the window; fitting those")
@@ -201,7 +207,7 @@ class IdentifyNode(Node):
                 self.get_clock().now().nanoseconds))
             self.get_logger().info(f"{text}; time left in this phase {duration(left)}")
 
-        poses = world_gripper_poses(self, self.gripper)
+        poses = world_gripper_poses(self, self.gripper)  # the fit's and the loop closure's
         identification = identify_objects(frames, self.particles, self.scene, self.config,
                                           gripper_poses=poses, progress=progress)
         estimates = identification.estimates
@@ -216,9 +222,9 @@ class IdentifyNode(Node):
             self.get_logger().info(f"estimate {obj.name} ({obj.family}) {obj.level}: {values}")
         self.get_logger().info(f"identification done in {time.monotonic() - started:.1f} s")
         if self.config.close_loop:
-            self._close_loop(frames)
+            self._close_loop(frames, poses)
 
-    def _close_loop(self, frames: list[ObservedFrame]) -> None:
+    def _close_loop(self, frames: list[ObservedFrame], poses: list) -> None:
         started = time.monotonic()
 
         time_left = TimeLeft()
@@ -230,7 +236,7 @@ class IdentifyNode(Node):
 
         try:
             result = LoopClosure(frames, self.particles, self.scene, self.config,
-                                 gripper_poses=world_gripper_poses(self, self.gripper),
+                                 gripper_poses=poses,
                                  progress=progress).run()
         except (LoopError, SimulationError, ValueError) as error:
             self.get_logger().error(f"loop closure failed: {error}")
