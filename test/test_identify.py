@@ -18,7 +18,7 @@ from mosiv_ros.identify import losses
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
-from mosiv_ros.identify.fit import FitProblem, FitSettings, Identifier
+from mosiv_ros.identify.fit import SPLAT_SHARE, FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import (
     chamfer,
     chamfer_batch,
@@ -32,6 +32,7 @@ from mosiv_ros.identify.losses import (
 from mosiv_ros.identify.observations import Observations, TrackAttachment, View, padded
 from mosiv_ros.identify.run import fit_problem, phase_progress
 from mosiv_ros.progress import TimeLeft, duration
+from mosiv_ros.recon.views import OCCLUDED
 from mosiv_ros.sim import Ground, ObjectModel, Particles
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.sim.errors import SimulationDiverged
@@ -71,6 +72,63 @@ def test_scene_level_loss_lets_one_objects_points_explain_anothers():
     index = np.repeat([0, 1], 30)
     assert geometry_loss(x, index, [a, b], per_object=False)[0] == pytest.approx(0.0)
     assert geometry_loss(x, index, [a, b], per_object=True)[0] > 10.0
+
+
+def test_silhouette_leaves_out_pixels_a_known_occluder_covers():
+    # the declared gripper's pixels (OCCLUDED in the frames' masks) may hide the object: no
+    # silhouette error there, where a background pixel would count one
+    view = _camera_looking_down()
+    x = np.stack(np.meshgrid(*[np.linspace(-0.03, 0.03, 7)] * 2, [0.0], indexing="ij"), -1).reshape(-1, 3)
+    index = np.zeros(len(x), dtype=int)
+    background = np.zeros((48, 64), dtype=np.int32)
+    covered = np.full((48, 64), OCCLUDED, dtype=np.int32)
+    covered[:, :8] = 0  # some known background, so that the frame counts
+    assert silhouette_loss(x, index, [1], [view], {"top": background}, 0.005)[0] > 0.01
+    assert silhouette_loss(x, index, [1], [view], {"top": covered}, 0.005)[0] < 1e-6
+
+
+@pytest.mark.parametrize("spacing", [0.005, 0.01])
+def test_splats_of_half_a_spacing_draw_a_block_of_particles_at_its_own_outline(spacing):
+    # A particle stands for a cube of one spacing: a block of them is as wide as their lattice
+    # plus a spacing. Splats of SPLAT_SHARE spacings fit the block's true outline better than
+    # larger ones (a fixed 5 mm at 5 mm spacing drew it a pixel fat: RESULTS.md).
+    view = _camera_looking_down(0.25)  # 100 px focal: a pixel is 2.5 mm at the block's top
+    n = round(0.04 / spacing)
+    axis = (np.arange(n) - (n - 1) / 2) * spacing
+    x = np.stack(np.meshgrid(axis, axis, axis - axis.max(), indexing="ij"), -1).reshape(-1, 3)
+    (c0, r0), (c1, r1) = np.sort(view.project(np.array([[-0.02, -0.02, 0.0], [0.02, 0.02, 0.0]]))[0], axis=0)
+    mask = np.zeros((48, 64), dtype=np.int32)
+    mask[round(r0):round(r1), round(c0):round(c1)] = 1  # the pixels whose centres lie inside
+    index = np.zeros(len(x), dtype=int)
+    losses_at = {share: silhouette_loss(x, index, [1], [view], {"top": mask}, share * spacing)[0]
+                 for share in (SPLAT_SHARE, 2 * SPLAT_SHARE)}
+    assert losses_at[SPLAT_SHARE] < 0.7 * losses_at[2 * SPLAT_SHARE], losses_at
+
+
+def test_calibrated_splats_cover_the_pixels_the_mask_shows_and_grow_with_a_wider_mask():
+    # a block of particles and the mask of its outline, then the same mask a pixel wider all round
+    view = _camera_looking_down(0.25)
+    spacing = 0.01
+    axis = (np.arange(4) - 1.5) * spacing
+    x = np.stack(np.meshgrid(axis, axis, axis - axis.max(), indexing="ij"), -1).reshape(-1, 3)
+    (c0, r0), (c1, r1) = np.round(np.sort(view.project(np.array([[-0.02, -0.02, 0.0], [0.02, 0.02, 0.0]]))[0],
+                                          axis=0)).astype(int)
+    exact = np.zeros((48, 64), dtype=np.int32)
+    exact[r0:r1, c0:c1] = 7
+    wide = np.zeros_like(exact)
+    wide[r0 - 1:r1 + 1, c0 - 1:c1 + 1] = 7
+    radius = losses.calibrated_splat_radius(x, 7, [view], {"top": exact}, spacing)
+    wider = losses.calibrated_splat_radius(x, 7, [view], {"top": wide}, spacing)
+    assert 0.1 * spacing < radius < wider < spacing
+    # at the calibrated radius the soft mask holds as many pixels as the mask
+    for r, mask in ((radius, exact), (wider, wide)):
+        uv, z = view.project(x)
+        sigma = torch.as_tensor(np.maximum(100.0 * r / z, 0.5)[None])
+        reach = min(max(int(np.ceil(3 * float(sigma.max()))), 1), 8)  # as the loss's splats reach
+        uv = torch.as_tensor(uv[None])
+        soft = losses._soft_masks(uv, sigma, torch.ones((1, len(x)), dtype=torch.bool), reach, 48, 64)[0]
+        assert float(soft.sum()) == pytest.approx(float((mask == 7).sum()), rel=0.02)
+    assert losses.calibrated_splat_radius(x, 8, [view], {"top": exact}, spacing) is None  # not in the mask
 
 
 def _camera_looking_down(height: float = 1.0) -> View:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from mosiv_ros.config import ReconstructionConfig
@@ -15,7 +16,7 @@ from mosiv_ros.io.scene import DeclaredGripper
 from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon import Reconstructor
 from mosiv_ros.recon.gripper import GripperShape, gripper_at
-from mosiv_ros.recon.views import View
+from mosiv_ros.recon.views import OCCLUDED, View
 from mosiv_ros.synth.ground_truth import read_ground_truth_particles
 from mosiv_ros.synth.shapes import ring_camera_pose, ring_intrinsics
 
@@ -80,6 +81,66 @@ def test_the_plate_pressing_the_cube_hides_its_top_instead_of_carving_it():
     carved = reconstructor.reconstruct(frame_set).objects[1].occupancy
     true = truth.positions[0][truth.object_id == 1]
     assert carved[:, 2].max() < 0.045 and hidden[:, 2].max() > 0.05  # the true top: 6 cm
+    # The cube's top 2 cm (576 voxels) is hidden by the plate from every camera, and so is the
+    # space under the plate's overhang beside it. The top continues what the cameras show of the
+    # cube below it and is kept (135 of its voxels were, when only what a view shows was kept);
+    # the overhang's space does not (830 voxels in this slab when all hidden space was kept).
+    assert 0.9 * 576 <= np.sum((hidden[:, 2] > 0.04) & (hidden[:, 2] < 0.06)) <= 1.1 * 576
     assert chamfer_distance(hidden, true) < 0.5 * chamfer_distance(carved, true)
     plate = GripperShape(recording.scene.gripper, pose)
     assert not plate.contains(hidden).any()
+
+
+def test_space_the_gripper_hides_from_every_camera_is_kept_only_where_the_object_continues_it():
+    # The plate lowered beside the cube, 2.5 cm over the floor: the cameras see nothing under it,
+    # and no object continues there. With all hidden space kept, 5 voxels were kept there, up to
+    # 16 cm from the cube's axis.
+    recording = read_recording(PRESSED)
+    frame_set = match_frames(recording.cameras, 5_000_000)[0]
+    reconstructor = Reconstructor(recording.cameras, ReconstructionConfig(use_depth=True), recording.scene)
+    beside = _pose([0.0, 0.13, 0.025])
+    occupancy = reconstructor.reconstruct(frame_set, beside).objects[1].occupancy
+    assert len(occupancy) > 500
+    assert np.linalg.norm(occupancy[:, :2], axis=1).max() < 0.05  # the cube's half-diagonal: 4.2 cm
+
+
+def test_the_frames_masks_mark_the_plates_background_pixels_occluded():
+    recording = read_recording(PRESSED)
+    frame_set = match_frames(recording.cameras, 5_000_000)[0]
+    config = ReconstructionConfig(use_depth=True)
+    reconstructor = Reconstructor(recording.cameras, config, recording.scene)
+    pose = gripper_at(recording.gripper_poses, frame_set.stamp_ns)
+    observed = reconstructor.reconstruct(frame_set, pose)
+    plate = GripperShape(recording.scene.gripper, pose)
+    for name, mask in observed.masks.items():
+        view = View(recording.cameras[name], frame_set.frames[name], mask_filter=config.mask_filter, use_depth=False)
+        covered = np.isfinite(plate.depth(view))
+        recorded = view.labels  # filtered as carving reads them
+        assert covered.any() and np.all(mask[covered & (recorded == 0)] == OCCLUDED)
+        assert np.array_equal(mask[~covered], recorded[~covered])
+        assert np.array_equal(mask[recorded == 1], recorded[recorded == 1])  # the cube's own pixels stay
+    assert reconstructor.reconstruct(frame_set).masks.keys() == observed.masks.keys()
+    assert not any((m == OCCLUDED).any() for m in reconstructor.reconstruct(frame_set).masks.values())
+
+
+@pytest.mark.parametrize("declared", [DeclaredGripper("box", (0.02, 0.03, 0.01)),
+                                      DeclaredGripper("sphere", (0.02,)),
+                                      DeclaredGripper("capsule", (0.01, 0.03))])
+def test_away_points_from_the_grippers_nearest_point(declared):
+    pose = _pose([0.1, -0.2, 0.3], (0.3, -0.5, 1.1))
+    shape = GripperShape(declared, pose)
+    # the gripper as the points of a 1 mm grid inside it, by brute force
+    axis = np.arange(-0.04, 0.0405, 0.001)
+    grid = pose[:3, 3] + np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    solid = grid[shape.contains(grid)]
+    rng = np.random.default_rng(3)
+    points = pose[:3, 3] + rng.normal(size=(300, 3)) * 0.06
+    _, nearest = cKDTree(solid).query(points)
+    gap = points - solid[nearest]
+    far = np.linalg.norm(gap, axis=1) > 0.02  # the grid's 1 mm is a small angle from there
+    expected = gap[far] / np.linalg.norm(gap[far], axis=1, keepdims=True)
+    away = shape.away(points[far])
+    assert far.sum() > 100
+    np.testing.assert_allclose(np.linalg.norm(away, axis=1), 1.0)
+    angle = np.degrees(np.arccos(np.clip(np.sum(away * expected, axis=1), -1, 1)))
+    assert angle.max() < 8.0 and np.median(angle) < 2.0  # the centre's direction: up to 90 on a box

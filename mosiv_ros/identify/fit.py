@@ -51,7 +51,14 @@ from mosiv_ros.config import FitConfig
 from mosiv_ros.identify.checkpoint import Checkpoint, signature
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, Curriculum, FitState
-from mosiv_ros.identify.losses import geometry_loss, silhouette_losses, tensor_terms, torch_threads, track_loss
+from mosiv_ros.identify.losses import (
+    calibrated_splat_radius,
+    geometry_loss,
+    silhouette_losses,
+    tensor_terms,
+    torch_threads,
+    track_loss,
+)
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.identify.search import GlobalSearch
 from mosiv_ros.lifting.lift import boundary_volume
@@ -61,6 +68,11 @@ from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
 from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
+
+SPLAT_SHARE = 0.5
+"""The silhouette splats' radius (``losses``) in particle spacings where no mask calibrates it
+(``Identifier._splat_radius``): a particle stands for a cube of one spacing, the outermost up
+to half a spacing inside the surface."""
 
 MODULI = ("E", "bulk_modulus")
 """Parameters that set the stable time step through the wave speed: ``max_modulus`` caps them."""
@@ -75,7 +87,6 @@ class FitSettings(FitConfig):
 
     fit_velocity: bool = True
     resync_every: int = 10
-    splat_radius: float = 0.005
     search_decades: float = 1.0
 
     @classmethod
@@ -212,6 +223,8 @@ class Identifier:
         self.observed_centroids = obs.centroids()
         self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
+        self.splat_radius = self._splat_radius()
+        """(K,) radius (m) of each object's particle splats in the silhouette loss (``_splat_radius``)."""
         self.tensor_device: str | None = self.sim.device if self.sim.device.startswith("cuda") else None
         """Where the losses are computed as tensors, every frame (and row) at once
         (``losses.tensor_terms``): the simulator's GPU. None: on the CPU frame by frame, nearest
@@ -219,6 +232,34 @@ class Identifier:
         to run the tensor path there)."""
         self.search = GlobalSearch(self)
         self.curriculum = Curriculum(self)
+
+    def _splat_radius(self) -> np.ndarray:
+        """Each object's silhouette splat radius (K,): calibrated on the first frame's masks.
+
+        ``losses.calibrated_splat_radius`` over the object's particles inside the surface at the
+        first frame, the one they were lifted from; ``SPLAT_SHARE`` particle spacings for an
+        object no mask of that frame shows (or without a silhouette loss).
+        """
+        problem = self.problem
+        spacing = (float(np.cbrt(problem.boundary.lattice_volume)) if problem.boundary is not None
+                   else problem.sim_config.dx / 2)  # lifting samples at half a cell
+        radius = np.full(len(problem.objects), SPLAT_SHARE * spacing)
+        obs = problem.observations
+        if self.settings.loss.silhouette_weight <= 0 or not obs.masks:
+            return radius
+        inside = (problem.boundary.inside(np.zeros(len(self.index))) if problem.boundary is not None
+                  else np.ones(len(self.index), dtype=bool))
+        for k, (model, object_id) in enumerate(zip(problem.objects, obs.object_ids, strict=True)):
+            mine = inside & (self.index == k)
+            calibrated = calibrated_splat_radius(problem.particles.x[mine], object_id, obs.views, obs.masks[0],
+                                                 spacing, self.torch_device)
+            if calibrated is not None:
+                radius[k] = calibrated
+            _LOG.info("silhouette splats of %s: radius %.2f mm (%.2f particle spacings)%s", model.name,
+                      radius[k] * 1e3, radius[k] / spacing,
+                      ", where its first frame's particles cover the pixels its masks show"
+                      if calibrated is not None else "")
+        return radius
 
     def report(self, record: dict) -> None:
         """Hand a progress record to the ``progress`` callback, if any.
@@ -361,7 +402,7 @@ class Identifier:
             # the particles the Chamfer scores, not the boundary band outside the surface
             value, g = silhouette_losses(traj[1:, 0][:, inside], self.index[inside], obs.object_ids,
                                          obs.views, obs.masks[start + 1: start + length + 1],
-                                         s.splat_radius, s.loss.per_object, self.torch_device)
+                                         self.splat_radius, s.loss.per_object, self.torch_device)
             total += s.loss.silhouette_weight * value
             dL[1:, 0, inside] += s.loss.silhouette_weight * g
         if s.loss.track_weight > 0 and obs.tracks is not None:
@@ -383,7 +424,7 @@ class Identifier:
             x = torch.tensor(traj[None, 1:, 0], dtype=torch.float64, device=device, requires_grad=grad)
             terms = tensor_terms(x, torch.as_tensor(inside[None], device=device), self.index,
                                  obs.tensors(device), obs.object_ids, slice(start + 1, start + length + 1),
-                                 loss, self.settings.splat_radius)
+                                 loss, self.splat_radius)
             total = (loss.chamfer_weight * terms.chamfer_total.sum() + loss.silhouette_weight
                      * terms.silhouette.sum() + loss.track_weight * terms.track.sum()) / length
             per = (terms.chamfer.nan_to_num().sum(dim=1) + loss.track_weight * terms.track.sum(dim=1)) / length

@@ -14,7 +14,8 @@ per object keeps one object's points from "explaining" another's at contact. A s
   pseudo-Huber s^2 (sqrt(1 + |r|^2 / s^2) - 1) (about |r|^2 / 2 below the scale s, m^2 like the
   Chamfer, growing only as s |r| beyond it, so that a drifted track pulls with a bounded force),
   times the track's confidence, mean over the object's tracks alive in the frame; exact gradient.
-- Silhouette: each particle is a Gaussian splat of standard deviation ``splat_radius`` (m)
+- Silhouette: each particle is a Gaussian splat of standard deviation ``splat_radius`` (m; one
+  for all objects, or one per object, as ``calibrated_splat_radius`` gives them)
   projected to pixels, the soft mask is A = 1 - prod(1 - 0.9 w_i), and the loss is the mean
   absolute difference to the observed mask over the pixels that show object k or background;
   pixels of other objects are unknown for k (they may occlude it) and left out. Gradients come
@@ -331,7 +332,7 @@ class Terms:
 
 def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarray,
                  observed: ObservedTensors, object_ids: list[int], frames: slice, loss: LossConfig,
-                 splat_radius: float) -> Terms:
+                 splat_radius: float | np.ndarray) -> Terms:
     """Every loss term of R rows of particles at once, on the particles' device.
 
     ``x`` (R, F, N, 3) float64 the particles at ``frames`` of ``observed``; ``visible`` (R, N)
@@ -462,7 +463,7 @@ def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[l
 
 
 def silhouette_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
-                      views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
+                      views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float | np.ndarray,
                       per_object: bool = True, device: str = "cpu") -> tuple[float, np.ndarray]:
     """Silhouette loss summed over frames, and its gradient dL/dx (F, N, 3).
 
@@ -480,7 +481,7 @@ def silhouette_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[
 
 def silhouette_object_losses(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
                              views: list[View], masks: list[dict[str, np.ndarray]],
-                             splat_radius: float, per_object: bool = True,
+                             splat_radius: float | np.ndarray, per_object: bool = True,
                              device: str = "cpu") -> np.ndarray:
     """``silhouette_losses`` split by object (K,), without a gradient; (1,) if not ``per_object``."""
     return _silhouettes(x, object_index, object_ids, views, masks, splat_radius, per_object,
@@ -488,7 +489,7 @@ def silhouette_object_losses(x: np.ndarray, object_index: np.ndarray, object_ids
 
 
 def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
-                 views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float,
+                 views: list[View], masks: list[dict[str, np.ndarray]], splat_radius: float | np.ndarray,
                  per_object: bool, device: str, grad: bool) -> tuple[np.ndarray, np.ndarray]:
     x = np.asarray(x, dtype=np.float64)
     tensors = MaskTensors.of(views, masks, device)
@@ -507,7 +508,7 @@ def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
 
 def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_index: np.ndarray,
                       object_ids: list[int], masks: MaskTensors, frames: np.ndarray,
-                      splat_radius: float, per_object: bool) -> torch.Tensor:
+                      splat_radius: float | np.ndarray, per_object: bool) -> torch.Tensor:
     """Per row and group (each object, or all with the scene-level loss) the loss of ``frames``.
 
     ``x`` (R, F, N, 3) the particles of R rows at ``frames`` (F,) of ``masks``, those
@@ -515,6 +516,8 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     """
     rows, device = x.shape[0], x.device
     index = torch.as_tensor(object_index, device=device)
+    radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)),
+                             device=device)[index]  # (N,) each particle's object's
     groups = ([(index == k, [object_ids[k]]) for k in range(len(object_ids))] if per_object
               else [(torch.ones_like(index, dtype=torch.bool), list(object_ids))])
     totals = [torch.zeros(rows, dtype=torch.float64, device=device) for _ in groups]
@@ -529,7 +532,7 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
         z = torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))
         K = masks.K[v]
         uv = cam[..., :2] / z[..., None] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
-        sigma = torch.clamp(K[0, 0] * splat_radius / z, min=0.5)
+        sigma = torch.clamp(K[0, 0] * radius / z, min=0.5)
         observed = masks.masks[v][shown]
         for g, (mine, ids) in enumerate(groups):
             valid = front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
@@ -549,8 +552,64 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     return torch.stack(totals, dim=1)
 
 
+SPLAT_SHARES = (0.1, 1.0)
+"""Range of the calibrated splat radius, in particle spacings (``calibrated_splat_radius``)."""
+
+
+def calibrated_splat_radius(x: np.ndarray, object_id: int, views: list[View], masks: dict[str, np.ndarray],
+                            spacing: float, device: str = "cpu", steps: int = 20) -> float | None:
+    """The splat radius (m) at which one object's particles ``x`` (N, 3) cover as many pixels as ``masks`` show of it.
+
+    Meant for the frame the particles were lifted from, where the twin's silhouettes should be
+    the masks'. A recording's masks may draw an object wider or narrower than the particles
+    lifted from them (the visual hull is wider than the object, and more so for a cube than a
+    ball; a renderer may draw each particle as a ball wider than its spacing): at a fixed radius
+    every frame's silhouette is then off the same way, and the fit answers through the
+    material, with a less bulging object for silhouettes drawn too wide. The soft mask's pixel
+    mass over the pixels known for the object (as the loss counts them), summed over the views,
+    grows with the radius; bisection (``steps``) finds where it equals the masks' within
+    ``SPLAT_SHARES`` particle spacings, clamped there. None where no view shows the object.
+    """
+    shown = [v for v in views if v.name in masks and np.any(masks[v.name] == object_id)]
+    if not shown or not len(x):
+        return None
+    x = torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
+
+    def excess(radius: float) -> float:
+        total = 0.0
+        for view in shown:
+            T = torch.as_tensor(np.linalg.inv(view.T_world_optical), device=device)
+            K = torch.as_tensor(view.K, device=device)
+            cam = x @ T[:3, :3].T + T[:3, 3]
+            front = cam[:, 2] > 1e-3
+            uv = cam[front, :2] / cam[front, 2:] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
+            sigma = torch.clamp(K[0, 0] * radius / cam[front, 2], min=0.5)
+            observed = torch.as_tensor(np.asarray(masks[view.name], dtype=np.int64), device=device)
+            target = (observed == object_id).to(x.dtype)
+            known = (target > 0) | (observed == 0)
+            if not len(uv):  # none of the particles in front of the camera
+                total -= float((target * known).sum())
+                continue
+            every = torch.ones((1, len(uv)), dtype=torch.bool, device=device)
+            reach = _reach(sigma[None, None], every[None])[0]
+            soft = _soft_masks(uv[None], sigma[None], every, reach, view.height, view.width)[0]
+            total += float(((soft - target) * known).sum())
+        return total
+
+    lo, hi = (share * spacing for share in SPLAT_SHARES)
+    with torch_threads(device), torch.no_grad():
+        if excess(lo) >= 0.0:
+            return lo
+        if excess(hi) <= 0.0:
+            return hi
+        for _ in range(steps):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if excess(mid) < 0.0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def silhouette_loss(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
-                    views: list[View], masks: dict[str, np.ndarray], splat_radius: float,
+                    views: list[View], masks: dict[str, np.ndarray], splat_radius: float | np.ndarray,
                     per_object: bool = True, device: str = "cpu") -> tuple[float, np.ndarray]:
     """``silhouette_losses`` of one frame: particles ``x`` (N, 3), masks by view name."""
     loss, grad = silhouette_losses(np.asarray(x)[None], object_index, object_ids, views, [masks],

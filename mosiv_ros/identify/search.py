@@ -251,7 +251,7 @@ class GlobalSearch:
             for b in range(n):  # as Identifier.window_loss: the particles inside the surface
                 silhouette = s.loss.silhouette_weight / frames * silhouette_object_losses(
                     traj[1:frames + 1, b][:, inside[b]], fit.index[inside[b]], obs.object_ids,
-                    obs.views, obs.masks[1:frames + 1], s.splat_radius, s.loss.per_object,
+                    obs.views, obs.masks[1:frames + 1], fit.splat_radius, s.loss.per_object,
                     fit.torch_device)
                 total[b] += silhouette.sum()
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
@@ -264,7 +264,7 @@ class GlobalSearch:
         with torch_threads(device), torch.no_grad():
             x = torch.as_tensor(traj[1:frames + 1], device=device).to(torch.float64).transpose(0, 1)
             terms = tensor_terms(x, torch.as_tensor(inside, device=device), fit.index, obs.tensors(device),
-                                 obs.object_ids, slice(1, frames + 1), loss, fit.settings.splat_radius)
+                                 obs.object_ids, slice(1, frames + 1), loss, fit.splat_radius)
             shares = loss.silhouette_weight / frames * terms.silhouette
             total = ((loss.chamfer_weight * terms.chamfer_total + loss.track_weight * terms.track.sum(dim=2))
                      .mean(dim=1) + shares.sum(dim=1))

@@ -2,14 +2,22 @@
 
 What it is for: the occupied voxels of one object at one stamp, from several ``View``s. A voxel
 is kept when (1) no view says it is empty, (2) it projects into at least ``min_views`` images and
-(3) at least one view shows the object there. A view says "empty" when the voxel projects onto a
+(3) at least one view shows the object there, or a known occluder hides it and the object
+continues there (below). A view says "empty" when the voxel projects onto a
 background pixel, or, with depth, lies in front of the measured surface by more than the depth
 tolerance (free space, whatever the label). A pixel of *another* object is unknown, not empty: it
 may hide this one. Pixels outside an image are unknown too. Below a known ground plane nothing is
 kept (no camera can see there, so carving alone would keep the object's shadow in the ground).
 A known occluder the masks leave out (the declared gripper, ``recon.gripper``; ``View.occluder``)
 makes the background pixels where it lies in front of a voxel unknown too, and the space it
-fills (``inside``) empty.
+fills (``inside``) empty. What it hides from every camera may be the object's: a cube's top
+under a pressing plate is, and without (3)'s second clause it was lost. But so is the space
+under the plate's overhang beside the cube, which no view can tell from the cube's top. A
+hidden voxel is kept where the object continues it away from the occluder: marching from it
+along ``away`` (the direction from the occluder's nearest point, the way it presses) through
+hidden voxels reaches a voxel a view shows as the object before an empty one. So the cube's top
+is kept above what the cameras show of its sides, the overhang's space (empty below it) is not,
+and neither is the space under a gripper that holds nothing.
 What it is not for: separating objects from each other or extracting surfaces (``reconstruct``).
 
 Coarse to fine: cells of 2^l voxels are tested conservatively, survivors split into 8, down to
@@ -79,6 +87,7 @@ def carve_object(
     depth_tolerance: float,
     ground: tuple[np.ndarray, float] | None = None,
     inside: Callable[[np.ndarray], np.ndarray] | None = None,
+    away: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> np.ndarray:
     """Voxel indices (N, 3) int64 occupied by ``object_id`` (see the module docstring's rules).
 
@@ -103,7 +112,37 @@ def carve_object(
         cells = cells[lattice.centres(cells) @ ground[0] >= ground[1]]
     if inside is not None:
         cells = cells[~inside(lattice.centres(cells))]
-    return cells[_keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance)]
+    keep, shown = _keep_voxels(views, object_id, lattice, cells, min_views, depth_tolerance)
+    cells, shown = cells[keep], shown[keep]
+    if shown.all():
+        return cells
+    if away is None:
+        return cells[shown]
+    return cells[shown | _continued(cells, shown, away(lattice.centres(cells)))]
+
+
+def _continued(cells: np.ndarray, shown: np.ndarray, away: np.ndarray) -> np.ndarray:
+    """Which ``cells`` (N, 3) reach a ``shown`` cell through kept ones marching along ``away`` (N, 3).
+
+    Half-voxel steps from each cell's centre; a march ends at a shown cell (continued), or at a
+    cell not kept or past the cells' box (not).
+    """
+    lo = cells.min(axis=0)
+    state = np.zeros(tuple(cells.max(axis=0) - lo + 1), dtype=np.int8)  # 0 empty, 1 hidden, 2 shown
+    state[tuple((cells - lo).T)] = np.where(shown, 2, 1)
+    todo = np.flatnonzero(~shown & np.any(away != 0, axis=1))
+    found = shown.copy()
+    position = (cells[todo] - lo + 0.5).astype(np.float64)
+    while len(todo):  # every step moves half a voxel: the box's diagonal bounds the steps
+        position += 0.5 * away[todo]
+        index = np.floor(position).astype(np.int64)
+        inside = np.all((index >= 0) & (index < state.shape), axis=1)
+        at = np.zeros(len(todo), dtype=np.int8)
+        at[inside] = state[tuple(index[inside].T)]
+        found[todo[at == 2]] = True
+        going = at == 1
+        todo, position = todo[going], position[going]
+    return found
 
 
 def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: np.ndarray,
@@ -135,23 +174,28 @@ def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: 
         # The object may be there: its pixels are in the footprint, or part of the footprint
         # lies outside the image, or the cell reaches the camera plane.
         evidence |= (touches & ~within) | (within & (view.count_object(object_id, *box) > 0))
+        if view.occluder is not None:  # or a known occluder may hide some of its voxels
+            evidence |= within & (view.nearest_occluder(*box) < z.reshape(-1, 8).max(axis=1))
     return ~carved & (seen >= min_views) & evidence
 
 
 def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels: np.ndarray,
-                 min_views: int, depth_tolerance: float) -> np.ndarray:
-    """Exact test of single voxels at their centres."""
+                 min_views: int, depth_tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact test of single voxels at their centres: which are kept, which a view shows."""
     centres = lattice.centres(voxels)
     empty = np.zeros(len(voxels), dtype=bool)
     seen = np.zeros(len(voxels), dtype=np.int32)
     evidence = np.zeros(len(voxels), dtype=bool)
+    hidden = np.zeros(len(voxels), dtype=bool)
     for view in views:
         u, v, z = view.project(centres)
         row, col, inside = view.pixels(u, v)
         label = view.labels[row, col]
         background = inside & (label == 0)
         if view.occluder is not None:  # a known occluder in front hides the voxel
-            background &= ~(view.occluder[row, col] < z - depth_tolerance)
+            behind = inside & (view.occluder[row, col] < z - depth_tolerance)
+            background &= ~behind
+            hidden |= behind
         empty |= background
         if view.depth is not None:
             depth = view.depth[row, col]
@@ -159,4 +203,4 @@ def _keep_voxels(views: Sequence[View], object_id: int, lattice: Lattice, voxels
                 empty |= inside & (z < depth - depth_tolerance)
         seen += inside
         evidence |= inside & (label == object_id)
-    return ~empty & (seen >= min_views) & evidence
+    return ~empty & (seen >= min_views) & (evidence | hidden), evidence

@@ -67,6 +67,25 @@ class GripperShape:
                             np.clip(local[:, 2], -half, half)], axis=1)
         return np.linalg.norm(local - nearest, axis=1) <= radius
 
+    def away(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) unit vectors from the gripper's nearest point to each world point outside it.
+
+        The direction the gripper presses what lies there (``carving``: what it hides continues
+        the object that way). Zero where undefined (a point at the nearest point itself).
+        """
+        local = (np.asarray(points, dtype=np.float64) - self.t) @ self.R
+        if self.shape == "box":
+            nearest = np.clip(local, -np.asarray(self.size), np.asarray(self.size))
+        elif self.shape == "sphere":
+            nearest = np.zeros_like(local)
+        else:
+            nearest = np.zeros_like(local)
+            nearest[:, 2] = np.clip(local[:, 2], -self.size[1], self.size[1])
+        offset = local - nearest
+        length = np.linalg.norm(offset, axis=1, keepdims=True)
+        unit = np.divide(offset, length, out=np.zeros_like(offset), where=length > 0)
+        return unit @ self.R.T
+
     def depth(self, view: View) -> np.ndarray:
         """(H, W): the optical depth at which each pixel's ray first meets the gripper, inf if never."""
         rows, cols = np.mgrid[0:view.height, 0:view.width]

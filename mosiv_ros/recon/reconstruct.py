@@ -91,7 +91,8 @@ class ObservedFrame:
     stamp_ns: int
     objects: dict[int, ObjectGeometry]
     masks: dict[str, np.ndarray] = field(default_factory=dict)
-    """Filtered instance masks per camera: the silhouettes for the 2D loss."""
+    """Filtered instance masks per camera: the silhouettes for the 2D loss (``OCCLUDED`` where the
+    declared gripper covers the background: ``View.silhouette_labels``)."""
     warnings: list[str] = field(default_factory=list)
     seconds: float = 0.0
     tracks: TrackPoints | None = None
@@ -220,12 +221,12 @@ class Reconstructor:
         views = [View(self.cameras[name], frame, mask_filter=self.config.mask_filter,
                       use_depth=self.config.use_depth)
                  for name, frame in sorted(frame_set.frames.items())]
-        inside = None
+        inside = away = None
         if self.gripper is not None and gripper_pose is not None:
             gripper = GripperShape(self.gripper, gripper_pose)
             for view in views:
                 view.hide_behind(gripper.depth(view))
-            inside = gripper.contains
+            inside, away = gripper.contains, gripper.away
         min_views = self.config.min_views or len(views)
         carved: dict[int, np.ndarray] = {}
         seen_by: dict[int, tuple[str, ...]] = {}
@@ -245,7 +246,7 @@ class Reconstructor:
                                 f"of {', '.join(cut)}; its part beyond the border {beyond}")
             carved[object_id] = carve_object(views, object_id, self.lattice, min_views=min_views,
                                              depth_tolerance=self.config.depth_tolerance,
-                                             ground=self.ground, inside=inside)
+                                             ground=self.ground, inside=inside, away=away)
         surfaces, colours = {}, {}
         for object_id in carved:
             points, rgb = zip(*(v.surface_points(object_id) for v in views), strict=True)
@@ -270,7 +271,7 @@ class Reconstructor:
                                                 self.lattice.voxel_size, seen_by[object_id], colour)
         tracks = (self.tracker.update(frame_set.stamp_ns, views, objects)
                   if self.tracker is not None else None)
-        return ObservedFrame(frame_set.stamp_ns, objects, {v.camera: v.labels for v in views},
+        return ObservedFrame(frame_set.stamp_ns, objects, {v.camera: v.silhouette_labels() for v in views},
                              warnings, time.perf_counter() - start, tracks, cut_by)
 
     def _object_ids(self, views: list[View], where: str, warnings: list[str]) -> list[int]:

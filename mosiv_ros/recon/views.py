@@ -57,6 +57,11 @@ def _summed_area(pixels: np.ndarray) -> np.ndarray:
     return table
 
 
+OCCLUDED = -1
+"""Label of a pixel that a known occluder the masks leave out covers (``View.silhouette_labels``):
+neither background nor an object's, so unknown for every object."""
+
+
 class View:
     """One calibrated camera's labels (and depth) at one stamp, queried at world points."""
 
@@ -128,6 +133,16 @@ class View:
         """
         self.occluder = np.asarray(depth, dtype=np.float32)
         self._occluder_minima = None
+
+    def silhouette_labels(self) -> np.ndarray:
+        """The labels as the 2D loss reads them: ``OCCLUDED`` where a known occluder covers background.
+
+        There the occluder may hide any object, as another object's pixel may (``hide_behind``).
+        """
+        if self.occluder is None:
+            return self.labels
+        return np.where((self.labels == 0) & np.isfinite(self.occluder), OCCLUDED,
+                        self.labels.astype(np.int32))
 
     def nearest_occluder(self, r0: np.ndarray, r1: np.ndarray, c0: np.ndarray,
                          c1: np.ndarray) -> np.ndarray:
