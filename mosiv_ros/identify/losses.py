@@ -516,7 +516,7 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     """
     rows, device = x.shape[0], x.device
     index = torch.as_tensor(object_index, device=device)
-    radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)),
+    radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)).copy(),
                              device=device)[index]  # (N,) each particle's object's
     groups = ([(index == k, [object_ids[k]]) for k in range(len(object_ids))] if per_object
               else [(torch.ones_like(index, dtype=torch.bool), list(object_ids))])
