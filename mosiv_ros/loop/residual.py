@@ -50,7 +50,10 @@ from mosiv_ros.recon.reconstruct import ObservedFrame
 AXIS_GAP = 0.15
 """Relative gap between second-moment eigenvalues below which axes are not told apart."""
 SPLAT_RADIUS = 0.005
-"""Soft-silhouette splat radius (m), as the identifier's loss uses it."""
+"""Soft-silhouette splat radius (m): the identifier's fallback at the default 1 cm particle
+spacing, not its per-object radii calibrated on the first frame (``Identifier._splat_radius``;
+0.34-0.47 spacings on the sample bags). The residual compares models on one recording, which
+this radius draws alike."""
 
 
 @dataclass
