@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 
 from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.bag import read_recording
+from mosiv_ros.io.recording import match_frames
 from mosiv_ros.lifting import lift_first_complete
 from mosiv_ros.metrics import chamfer_distance
 from mosiv_ros.recon import Reconstructor, reconstruct_recording
@@ -96,3 +97,18 @@ def test_a_camera_missing_from_the_whole_recording_is_reported_and_still_gives_e
     notes = Reconstructor(two.cameras, ReconstructionConfig(), two.scene).notes
     assert any("only 2 camera(s) (cam0, cam1)" in note for note in notes)
 
+
+
+def test_the_thrown_balls_outline_is_not_given_to_the_clay_behind_it():
+    # In its first eight frames bags/thrown_ball's ball flies 4-11 cm clear of the clay. Pixels on
+    # its outline that the mask filter labels clay, with the ball's own depth, once gave its
+    # outline voxels to the clay: the two "touched" in four of the eight frames and the loop
+    # closure found no free flight.
+    bag = BAG.parent / "thrown_ball"
+    recording = read_recording(bag)
+    reconstructor = Reconstructor(recording.cameras, ReconstructionConfig(use_depth=True), recording.scene)
+    ball, clay = (obj.id for obj in recording.scene.objects)
+    for frame_set in match_frames(recording.cameras, 5_000_000)[:8]:
+        frame = reconstructor.reconstruct(frame_set)
+        gap = cKDTree(frame.objects[clay].occupancy).query(frame.objects[ball].occupancy)[0].min()
+        assert gap > 0.03, frame_set.stamp_ns

@@ -309,7 +309,11 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
     The winner is the claimant that the most views with depth show at the voxel's pixel where
     their measured surface passes through the voxel (it lies at most a voxel behind it): a view
     that sees another object in front of the voxel says nothing of it there, so an object half
-    buried under another keeps what the views from the side show of it. Then, for the voxels
+    buried under another keeps what the views from the side show of it. A pixel counts there
+    only where its filtered label is the recorded one: at an outline the majority filter can
+    give a pixel its neighbour's label while its depth is its own object's surface, and such
+    pixels gave a flying ball's outline voxels to the slab behind it (the loop's free flight then
+    saw them touch). Then, for the voxels
     no view's surface decides (inside the objects, or no depth), the claimant the most views
     show at the voxel's pixel; among those tied, the one whose own evidence (uncontested voxels,
     depth returns) is nearest.
@@ -330,7 +334,10 @@ def _separate(lattice: Lattice, views: list[View], carved: Mapping[int, np.ndarr
         if view.depth is not None:
             with np.errstate(invalid="ignore"):
                 on_surface = inside & (z <= view.depth[row, col] + lattice.voxel_size)
-            surface_labels.append(np.where(on_surface, view.labels[row, col], 0))
+            # only where the filtered label is the recorded one: at an outline the majority filter
+            # can give a pixel its neighbour's label while its depth is its own object's surface
+            agree = view.mask[row, col] == view.labels[row, col]
+            surface_labels.append(np.where(on_surface & agree, view.labels[row, col], 0))
     votes = np.full((len(ids), len(contested)), -1)
     distance = np.full((len(ids), len(contested)), np.inf)
     for row, object_id in enumerate(ids):
