@@ -506,6 +506,18 @@ def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
     return per, gradient
 
 
+def _splat_centres(x: torch.Tensor, world_to_optical: torch.Tensor,
+                   K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pixel positions (..., 2), depths and in-front flags of world points ``x`` (..., 3).
+
+    A point behind the camera gets depth 1 (its position is then meaningless; ``front`` says so).
+    """
+    cam = x @ world_to_optical[:3, :3].T + world_to_optical[:3, 3]
+    front = cam[..., 2] > 1e-3
+    z = torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))
+    return cam[..., :2] / z[..., None] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2], z, front
+
+
 def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_index: np.ndarray,
                       object_ids: list[int], masks: MaskTensors, frames: np.ndarray,
                       splat_radius: float | np.ndarray, per_object: bool) -> torch.Tensor:
@@ -526,12 +538,8 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
         if not len(local):
             continue
         shown = torch.as_tensor(frames[local], device=device)
-        T = masks.world_to_optical[v]
-        cam = x[:, torch.as_tensor(local, device=device)] @ T[:3, :3].T + T[:3, 3]
-        front = cam[..., 2] > 1e-3
-        z = torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))
         K = masks.K[v]
-        uv = cam[..., :2] / z[..., None] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
+        uv, z, front = _splat_centres(x[:, torch.as_tensor(local, device=device)], masks.world_to_optical[v], K)
         sigma = torch.clamp(K[0, 0] * radius / z, min=0.5)
         observed = masks.masks[v][shown]
         for g, (mine, ids) in enumerate(groups):
@@ -573,23 +581,23 @@ def calibrated_splat_radius(x: np.ndarray, object_id: int, views: list[View], ma
     shown = [v for v in views if v.name in masks and np.any(masks[v.name] == object_id)]
     if not shown or not len(x):
         return None
+    tensors = MaskTensors.of(shown, [masks], device)
     x = torch.as_tensor(np.asarray(x, dtype=np.float64), device=device)
+    # what does not depend on the radius, per view: the particles in front, the pixels known
+    placed = []
+    for v, view in enumerate(shown):
+        uv, z, front = _splat_centres(x, tensors.world_to_optical[v], tensors.K[v])
+        target = (tensors.masks[v][0] == object_id).to(x.dtype)
+        known = (target > 0) | (tensors.masks[v][0] == 0)
+        placed.append((view, tensors.K[v][0, 0], uv[front], z[front], target, known))
 
     def excess(radius: float) -> float:
         total = 0.0
-        for view in shown:
-            T = torch.as_tensor(np.linalg.inv(view.T_world_optical), device=device)
-            K = torch.as_tensor(view.K, device=device)
-            cam = x @ T[:3, :3].T + T[:3, 3]
-            front = cam[:, 2] > 1e-3
-            uv = cam[front, :2] / cam[front, 2:] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2]
-            sigma = torch.clamp(K[0, 0] * radius / cam[front, 2], min=0.5)
-            observed = torch.as_tensor(np.asarray(masks[view.name], dtype=np.int64), device=device)
-            target = (observed == object_id).to(x.dtype)
-            known = (target > 0) | (observed == 0)
+        for view, focal, uv, z, target, known in placed:
             if not len(uv):  # none of the particles in front of the camera
                 total -= float((target * known).sum())
                 continue
+            sigma = torch.clamp(focal * radius / z, min=0.5)
             every = torch.ones((1, len(uv)), dtype=torch.bool, device=device)
             reach = _reach(sigma[None, None], every[None])[0]
             soft = _soft_masks(uv[None], sigma[None], every, reach, view.height, view.width)[0]

@@ -167,15 +167,15 @@ def _keep_cells(views: Sequence[View], object_id: int, lattice: Lattice, cells: 
         box = (np.clip(r0, 0, view.height - 1), np.clip(r1, 0, view.height - 1),
                np.clip(c0, 0, view.width - 1), np.clip(c1, 0, view.width - 1))
         empty = within & (view.count_any(*box) == 0)
-        if view.occluder is not None:  # nor a known occluder in front of its farthest corner
-            empty &= view.nearest_occluder(*box) >= z.reshape(-1, 8).max(axis=1) - depth_tolerance
-        carved |= empty
-        seen += touches
         # The object may be there: its pixels are in the footprint, or part of the footprint
         # lies outside the image, or the cell reaches the camera plane.
         evidence |= (touches & ~within) | (within & (view.count_object(object_id, *box) > 0))
-        if view.occluder is not None:  # or a known occluder may hide some of its voxels
-            evidence |= within & (view.nearest_occluder(*box) < z.reshape(-1, 8).max(axis=1))
+        if view.occluder is not None:
+            nearest, farthest = view.nearest_occluder(*box), z.reshape(-1, 8).max(axis=1)
+            empty &= nearest >= farthest - depth_tolerance  # no known occluder in front of the cell
+            evidence |= within & (nearest < farthest)  # which may hide some of its voxels
+        carved |= empty
+        seen += touches
     return ~carved & (seen >= min_views) & evidence
 
 
