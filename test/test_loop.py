@@ -25,7 +25,7 @@ from synth_scenes import record_scene
 
 from mosiv_ros.config import IdentifyConfig, LiftingConfig, from_mapping, updated
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig, Ranked, Round
+from mosiv_ros.loop.closure import EXPLAINED, NOTHING, UNEXPLAINED, LoopClosure, LoopConfig, Ranked, Round, spread_limit
 from mosiv_ros.loop.freeflight import field_law
 from mosiv_ros.loop.library import Context, FieldCandidate, FloorTiltCandidate
 from mosiv_ros.loop.observations import Observations, Reobserver
@@ -226,6 +226,14 @@ def test_the_acceptance_threshold_pays_for_each_knob():
     assert config.threshold(2) < config.threshold(1)
     with pytest.raises(ValueError, match="holdout"):
         LoopConfig(holdout=1.0)
+
+
+def test_an_effect_free_flight_shows_may_predict_as_far_as_the_material_only_refits_spread():
+    # bags/thrown_ball at the full budget (ca45de1): the declared fit 5.24 mm held out, its
+    # control 8.23 mm, the drag refit 8.53 mm: within how far two material-only fits land apart
+    assert spread_limit([5.24, 8.23]) == pytest.approx(11.22)
+    assert spread_limit([8.23, 5.24]) == spread_limit([5.24, 8.23])
+    assert spread_limit([6.0, 6.0]) == 6.0  # refits that agree leave no room beyond them
 
 
 @pytest.fixture(scope="module")

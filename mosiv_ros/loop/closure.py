@@ -52,8 +52,10 @@ output (``mosiv_ros.loop.report.close_loop`` runs it on a bag):
    recording from another engine or a missing effect elsewhere leaves the model wrong, is not
    named for it). Of several accepted, the lowest held-out error wins. Where free flight shows
    the force and the candidate's law explains it there, that is the evidence for the effect, and the refit need
-   only predict the held-out frames no worse than the material-only models do (E_new at most
-   the larger of the current model's and its control's): a fit that already hides an effect in
+   only predict the held-out frames no worse than the material-only models do, within their
+   spread (``spread_limit``: E_new at most the larger of the current model's and its control's
+   plus their difference, how far refits of one model land apart on these frames): a fit that
+   already hides an effect in
    its materials and initial velocities can predict frames where the effect no longer acts (an
    object come to rest) as well as one with it. Of several such, free flight's AIC picks. Each
    model's AIC and BIC on the fitted frames (``information``) are reported beside.
@@ -632,20 +634,21 @@ class LoopClosure:
             round_.ranking.sort(key=lambda r: -_weight(r, round_.flight_force))
             _LOG.info("ranking: %s", ", ".join(_describe(r) for r in round_.ranking))
             leading = self.leading(round_)
-            spread = current.held_out_error
+            material_only = [current.held_out_error]
             if leading or round_.flight_force:  # the control: a candidate's budget, no new effect
                 round_.control = (self.fit(current.effects, ctx, "refit without a new effect", "control",
                                            warm=current) if round_.flight_force else
                                   self.fit(current.effects, ctx, "refit afresh without a new effect",
                                            "control-afresh"))
-                spread = max(spread, round_.control.held_out_error)
+                material_only.append(round_.control.held_out_error)
                 if round_.control.held_out_error < current.held_out_error:
                     current = round_.control
+            limit = spread_limit(material_only) if round_.flight_force else None
             for ranked in leading:
-                self.try_candidate(ranked, current, ctx, spread if round_.flight_force else None)
+                self.try_candidate(ranked, current, ctx, limit)
             accepted = [r for r in leading if r.accepted]
             if not accepted:
-                field = self.try_field(round_, current, ctx, spread) if round_.flight_force else None
+                field = self.try_field(round_, current, ctx, limit) if round_.flight_force else None
                 named = self.name_field(field, round_, ctx) if field is not None and field.accepted else None
                 if named is not None:  # the field is a named law: its refit stands for that law
                     round_.accepted = named.effects[-1][0].name
@@ -670,7 +673,7 @@ class LoopClosure:
         return LoopResult(before, current, rounds, verdict, self.window, loop,
                           time.perf_counter() - tick, self.families, self.flight)
 
-    def try_field(self, round_: Round, current: Model, ctx: Context, spread: float) -> Ranked | None:
+    def try_field(self, round_: Round, current: Model, ctx: Context, limit: float) -> Ranked | None:
         """Free flight's force as a smooth field, where no named effect explains it, refitted.
 
         Its terms come from ``freeflight.sparse_field`` and stay at their free-flight values; it
@@ -691,7 +694,7 @@ class LoopClosure:
                                       fit.chi2 + 2 * len(terms), dict(candidate.values),
                                       {label: fit.std[label] for label in candidate.values}))
         _LOG.info("free flight's force as a field: %s", "; ".join(candidate.describe()))
-        self.try_candidate(ranked, current, ctx, spread)
+        self.try_candidate(ranked, current, ctx, limit)
         round_.ranking.append(ranked)
         return ranked
 
@@ -759,12 +762,12 @@ class LoopClosure:
         """
         return self.observations(current.effects + ([(candidate, values)] if candidate.sensor else []), ctx)
 
-    def try_candidate(self, ranked: Ranked, current: Model, ctx: Context, spread: float | None = None) -> None:
+    def try_candidate(self, ranked: Ranked, current: Model, ctx: Context, limit: float | None = None) -> None:
         """Refit with the candidate and judge it (see the module docstring, step 6).
 
-        ``spread``: where free flight shows a force this candidate's law explains, the largest
-        held-out error of the material-only models (the current one and its control); the
-        refit need only stay within it, the evidence for the effect being free flight's.
+        ``limit``: where free flight shows a force this candidate's law explains, the held-out
+        error the refit may reach (``spread_limit`` of the material-only models), the evidence
+        for the effect being free flight's.
         """
         candidate = ranked.candidate
         effects = [(c, values) for c, values in current.effects] + [(candidate, ranked.estimate)]
@@ -776,14 +779,14 @@ class LoopClosure:
             return
         baseline = max(current.held_out_error, 1e-12)
         ranked.ratio = ranked.refit.held_out_error / baseline
-        evidenced = (spread is not None and ranked.flight is not None
+        evidenced = (limit is not None and ranked.flight is not None
                      and ranked.flight.explained >= self.loop.min_explained)
         if evidenced:
-            ranked.threshold = spread / baseline
+            ranked.threshold = limit / baseline
             ranked.accepted = bool(ranked.ratio <= ranked.threshold)
             ranked.note = (f"free flight shows it (explains {ranked.flight.explained:.2f} there); held-out "
                            f"error x{ranked.ratio:.2f} (accepts <= x{ranked.threshold:.2f}: no worse than "
-                           "a material-only refit)")
+                           "the material-only refits, within their spread)")
         else:
             ranked.threshold = self.loop.threshold(len(ranked.estimate))
             ranked.accepted = bool(ranked.ratio <= ranked.threshold)
@@ -837,6 +840,18 @@ class LoopClosure:
         values = {k: v for _, fitted in ranked.refit.effects for k, v in fitted.items()}
         worse = self.flight.chi2_at(joint, values) - self.flight.fit(joint).chi2
         return worse if worse > chi2.ppf(1.0 - P_VALUE, len(joint.labels)) else None
+
+
+def spread_limit(material_only: Sequence[float]) -> float:
+    """The held-out error a refit whose effect free flight shows may reach.
+
+    No worse than the material-only models' (the current model's and its control's), within
+    their spread. Refits of one model land this far apart on the held-out frames (a few more iterations,
+    warm-started, moved them from 4.4 to 8.7 mm on bags/thrown_ball), so a refit beyond the worst
+    of them by less than that is not worse than a material-only refit.
+    """
+    worst, best = max(material_only), min(material_only)
+    return worst + (worst - best)
 
 
 def rollout(identifier: Identifier, observations: Observations) -> Prediction:
