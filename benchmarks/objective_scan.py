@@ -34,6 +34,13 @@ measure, ``loop.residual.analyse``): what the twin predicts at that point, the t
 The simulation domain then covers every frame, as the loop's does, so the losses can differ in
 the last digits from a scan without it.
 
+Two switches ask what the time step does. ``--common-step`` rolls every row out at one time
+step, the stiffest row's (as the search batches rows on a GPU), instead of each at its own
+stable one: a scan along a modulus then changes the material alone, not also the substeps.
+``--step-scales 1,2,4`` adds rows of the base point at those multiples of its own stable
+substeps per frame (entry ``substeps``): how far the objective at one point moves with the
+discretisation alone.
+
 Writes JSON: the options, the base point, and per row the whole loss and each object's share.
 """
 
@@ -167,6 +174,10 @@ def main() -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--centroids", action="store_true",
                         help="also give each row's centroid error on the fitted and held-out frames")
+    parser.add_argument("--common-step", action="store_true",
+                        help="every row at the stiffest row's time step, not each at its own")
+    parser.add_argument("--step-scales", default="",
+                        help="multiples of the base point's stable substeps to roll it out at, e.g. 1,2,4")
     parser.add_argument("--out", type=Path, default=Path("out/objective_scan.json"))
     args = parser.parse_args()
 
@@ -232,14 +243,23 @@ def main() -> int:
             named.append((name, value))
     print(f"{len(rows)} rows over {window - 1} frames on {args.device} ...", flush=True)
     tick = time.perf_counter()
-    total, per = identifier.search.batch_object_losses(np.array(rows), v0)
+    search = identifier.search
+    total, per = search.batch_object_losses(np.array(rows), v0, together=args.common_step or None)
+    if args.step_scales:
+        identifier.apply(base, v0)
+        stable = identifier.sim.time_step()[0]
+        for scale in map(float, args.step_scales.split(",")):
+            substeps = max(stable, round(scale * stable))
+            t, p = search.batch_object_losses(base[None], v0, substeps=substeps)
+            total, per = np.concatenate([total, t]), np.concatenate([per, p])
+            named.append(("substeps", substeps))
     seconds = time.perf_counter() - tick
     names = [obj.name for obj in problem.objects]
     results = [{"entry": entry, "value": value, "loss": float(t),
                 "objects": dict(zip(names, map(float, p), strict=True))}
                for (entry, value), t, p in zip(named, total, per, strict=True)]
     if args.centroids:
-        for r, row in zip(results, rows, strict=True):
+        for r, row in zip(results[:len(rows)], rows, strict=True):  # not the step-scale rows
             r["centroid_error"] = centroid_errors(identifier, row, v0, prepared, window)
     print(f"{'entry':28s} {'value':>10s} {'loss x1e5':>10s}  " + " ".join(f"{n:>9s}" for n in names)
           + ("  centroid error fitted / held-out (mm)" if args.centroids else ""))

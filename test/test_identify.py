@@ -35,7 +35,7 @@ from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.recon.views import OCCLUDED
 from mosiv_ros.sim import Ground, ObjectModel, Particles
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
-from mosiv_ros.sim.errors import SimulationDiverged
+from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import MATERIAL_PARAMS
 from mosiv_ros.sim.sampling import box, sphere
 
@@ -431,6 +431,14 @@ def test_batched_losses_on_several_cpu_cores_equal_those_simulated_in_turn():
     # the time step matters: one row alone differs from the same row in the stiffest's batch
     alone = serial.search.batch_losses(candidates, velocity, together=False)
     assert not np.allclose(alone[:1], expected[0][:1], rtol=1e-9, atol=0)
+    # a forced substep count: the stiffest row's gives the batch's losses; fewer are refused
+    probe = serial.search.simulator(1)
+    serial.search.configure(probe, candidates[3:4])
+    stiffest = probe.time_step()[0]
+    forced = serial.search.batch_object_losses(candidates, velocity, substeps=stiffest)
+    np.testing.assert_array_equal(forced[0], expected[0])
+    with pytest.raises(ParameterError, match="below the stability bound"):
+        serial.search.batch_object_losses(candidates, velocity, substeps=stiffest - 1)
 
 
 def _jelly_problem(true_params, guess, frames=15, observed_points=None, **fit):

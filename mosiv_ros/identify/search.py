@@ -103,18 +103,20 @@ class GlobalSearch:
         return self.batch_object_losses(candidates, velocity, frames, together)[0]
 
     def batch_object_losses(self, candidates: np.ndarray, velocity: np.ndarray,
-                            frames: int | None = None,
-                            together: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+                            frames: int | None = None, together: bool | None = None,
+                            substeps: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``batch_losses`` and each object's share of them, (B,) and (B, K).
 
         The shares are NaN with the scene-level (ablation) loss, which does not split by object.
+        ``substeps``: every row at this many substeps per frame, together (refused below a row's
+        stability bound); by default the stiffest row's when together.
         """
         fit = self.identifier
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
         cuda = fit.sim.device.startswith("cuda")
         if together is None:
-            together = cuda
+            together = cuda or substeps is not None
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
             obs.tensors(fit.tensor_device)
@@ -128,7 +130,7 @@ class GlobalSearch:
             groups = [candidates] if cuda else np.array_split(candidates, workers)
             sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
             insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
-            substeps = max(sim.time_step()[0] for sim in sims)
+            substeps = substeps or max(sim.time_step()[0] for sim in sims)
             jobs = [partial(self._score, sim, inside, frames, substeps)
                     for sim, inside in zip(sims, insides, strict=True)]
         else:  # each row at its own time step, on the simulator of a free slot
