@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from mosiv_ros.io.transforms import PoseStream, StaticTransforms
+from mosiv_ros.io.transforms import PoseStream, StaticTransforms, pose_at
 
 
 def pose(yaw: float, t) -> np.ndarray:
@@ -57,3 +57,21 @@ def test_poses_received_before_their_frames_transform_are_placed_once_it_arrives
     np.testing.assert_allclose(poses[1][1][:3, 3], [1, 0.1, 0], atol=1e-12)
     stream.add(100, "world", pose(0.0, [0, 0, 2]))  # a pose at a stamp seen before replaces it
     np.testing.assert_allclose(stream.world()[0][0][1][:3, 3], [0, 0, 2])
+
+
+def test_a_pose_between_samples_is_interpolated_the_short_way_and_held_exactly_at_the_ends():
+    times = np.array([0.0, 1.0, 3.0])
+    positions = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 2.0, 0.0]])
+    half = np.sin(np.pi / 4), np.cos(np.pi / 4)  # a quarter turn about z
+    # the last sample's quaternion has the other sign: the same rotation, the long way round
+    quaternions = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, half[0], half[1]], [0.0, 0.0, -half[0], -half[1]]])
+    position, q = pose_at(times, positions, quaternions, 0.5)
+    np.testing.assert_allclose(position, [0.5, 0.0, 0.0])
+    np.testing.assert_allclose(q, [0.0, 0.0, np.sin(np.pi / 8), np.cos(np.pi / 8)], atol=1e-12)  # an eighth turn
+    position, q = pose_at(times, positions, quaternions, 2.0)  # the same rotation at both ends: no turn
+    np.testing.assert_allclose(position, [1.0, 1.0, 0.0])
+    np.testing.assert_allclose(np.abs(q), np.abs(quaternions[1]), atol=1e-12)
+    for t, k in ((-1.0, 0), (0.0, 0), (3.0, 2), (9.0, 2)):  # held, bit for bit
+        position, q = pose_at(times, positions, quaternions, t)
+        np.testing.assert_array_equal(position, positions[k])
+        np.testing.assert_array_equal(q, quaternions[k])

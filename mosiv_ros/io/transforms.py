@@ -6,7 +6,9 @@ chain of static transforms, each usable in either direction, from ``world``, as 
 
 What it is for: static poses, and stamped poses in a frame they connect to the world
 (``PoseStream``: the gripper's ``/gripper/pose``, received before or after its frame's
-transforms). Not for time-varying transforms (``/tf``).
+transforms); a pose between samples of a trajectory (``pose_at``: the one rule by which the
+simulator's colliders move and carving places the gripper). Not for time-varying transforms
+(``/tf``).
 """
 
 from __future__ import annotations
@@ -68,3 +70,41 @@ class PoseStream:
         placed = {frame: self.transforms.to_world(frame) for frame in {frame for _, (frame, _) in received}}
         poses = [(stamp, placed[frame] @ T) for stamp, (frame, T) in received if placed[frame] is not None]
         return poses, sorted(frame for frame, T in placed.items() if T is None)
+
+
+def pose_at(times: np.ndarray, positions: np.ndarray, quaternions: np.ndarray,
+            t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position (3,) and unit quaternion (x, y, z, w) at ``t`` on a sampled trajectory.
+
+    ``times`` (T,) strictly increasing, ``positions`` (T, 3), ``quaternions`` (T, 4) unit. Between
+    two samples the position is interpolated linearly and the rotation by slerp (the short way);
+    at or before the first sample and at or after the last the pose is that sample's, exactly.
+    """
+    i, s = segment(times, t)
+    j = min(i + 1, len(times) - 1)
+    if s == 0.0:
+        return np.array(positions[i], dtype=np.float64), np.array(quaternions[i], dtype=np.float64)
+    return (1 - s) * positions[i] + s * positions[j], slerp(quaternions[i], quaternions[j], s)
+
+
+def segment(times: np.ndarray, t: float) -> tuple[int, float]:
+    """(i, s): ``t`` lies s of the way from sample i to i + 1 (s = 0 at and beyond the ends)."""
+    if t <= times[0] or len(times) == 1:
+        return 0, 0.0
+    if t >= times[-1]:
+        return len(times) - 1, 0.0
+    i = int(np.searchsorted(times, t, side="right") - 1)
+    return i, float((t - times[i]) / (times[i + 1] - times[i]))
+
+
+def slerp(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
+    """The unit quaternion s of the way from a to b along the shorter arc."""
+    dot = float(np.dot(a, b))
+    if dot < 0.0:
+        b, dot = -np.asarray(b), -dot
+    dot = min(dot, 1.0)
+    if dot > 0.9995:
+        q = a + s * (b - a)
+        return q / np.linalg.norm(q)
+    theta = np.arccos(dot)
+    return (np.sin((1 - s) * theta) * a + np.sin(s * theta) * b) / np.sin(theta)

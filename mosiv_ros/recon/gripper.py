@@ -18,33 +18,30 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
 from mosiv_ros.io.scene import DeclaredGripper
+from mosiv_ros.io.transforms import pose_at, segment
 from mosiv_ros.recon.views import View
 
 
 def gripper_at(poses: Sequence[tuple[int, np.ndarray]], stamp_ns: int) -> np.ndarray | None:
     """T_world_gripper at ``stamp_ns`` from (stamp_ns, T) poses in stamp order (None if none).
 
-    Between two poses the position is interpolated linearly and the rotation by slerp; before
-    the first and after the last the gripper holds still there, as the simulator's collider does.
+    Interpolated as the simulator's collider moves (``io.transforms.pose_at``): linearly and by
+    slerp between two poses, held still before the first and after the last.
     """
     if not poses:
         return None
+    T = np.array([pose for _, pose in poses], dtype=np.float64)
     stamps = np.array([stamp for stamp, _ in poses], dtype=np.int64)
-    if stamp_ns <= stamps[0] or len(poses) == 1:
-        return np.array(poses[0][1], dtype=np.float64)
-    if stamp_ns >= stamps[-1]:
-        return np.array(poses[-1][1], dtype=np.float64)
-    i = int(np.searchsorted(stamps, stamp_ns, side="right") - 1)
-    (t0, T0), (t1, T1) = poses[i], poses[i + 1]
-    s = (stamp_ns - t0) / (t1 - t0)
-    T = np.eye(4)
-    T[:3, 3] = (1 - s) * np.asarray(T0)[:3, 3] + s * np.asarray(T1)[:3, 3]
-    turn = Slerp([0.0, 1.0], Rotation.from_matrix([np.asarray(T0)[:3, :3], np.asarray(T1)[:3, :3]]))
-    T[:3, :3] = turn(s).as_matrix()
-    return T
+    i, s = segment(stamps, stamp_ns)
+    if s == 0.0:  # at or beyond a pose: that pose, exactly
+        return T[i]
+    position, quaternion = pose_at(stamps, T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat(), stamp_ns)
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = Rotation.from_quat(quaternion).as_matrix(), position
+    return out
 
 
 class GripperShape:

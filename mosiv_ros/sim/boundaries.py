@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mosiv_ros.io.transforms import pose_at, segment
 from mosiv_ros.sim.params import ParamSpec
 
 WALL_CELLS = 3
@@ -105,15 +106,13 @@ class Collider:
 
     def pose(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Position (3,) and unit quaternion (x, y, z, w) at time t."""
-        i, s = self._segment(t)
-        j = min(i + 1, len(self.times) - 1)
-        return (1 - s) * self.positions[i] + s * self.positions[j], _slerp(self._q[i], self._q[j], s)
+        return pose_at(self.times, self.positions, self._q, t)
 
     def velocity(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Linear (3,) and angular (3,) velocity in world, constant over each segment."""
         if len(self.times) < 2 or t < self.times[0] or t >= self.times[-1]:
             return np.zeros(3), np.zeros(3)
-        i, _ = self._segment(t)
+        i, _ = segment(self.times, t)
         dt = self.times[i + 1] - self.times[i]
         linear = (self.positions[i + 1] - self.positions[i]) / dt
         # omega from the relative rotation q_{i+1} q_i^-1 = (axis sin(theta/2), cos(theta/2))
@@ -124,14 +123,6 @@ class Collider:
         angle = 2.0 * np.arctan2(sin_half, rel[3])
         axis = rel[:3] / sin_half if sin_half > 1e-12 else np.zeros(3)
         return linear, axis * angle / dt
-
-    def _segment(self, t: float) -> tuple[int, float]:
-        if t <= self.times[0] or len(self.times) == 1:
-            return 0, 0.0
-        if t >= self.times[-1]:
-            return len(self.times) - 1, 0.0
-        i = int(np.searchsorted(self.times, t, side="right") - 1)
-        return i, (t - self.times[i]) / (self.times[i + 1] - self.times[i])
 
 
 def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -147,12 +138,3 @@ def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _qconj(q: np.ndarray) -> np.ndarray:
     return np.array([-q[0], -q[1], -q[2], q[3]])
-
-
-def _slerp(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
-    dot = float(np.clip(np.dot(a, b), -1.0, 1.0))
-    if dot > 0.9995:
-        q = a + s * (b - a)
-        return q / np.linalg.norm(q)
-    theta = np.arccos(dot)
-    return (np.sin((1 - s) * theta) * a + np.sin(s * theta) * b) / np.sin(theta)
