@@ -78,6 +78,7 @@ def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], record
     images = _images_by_stamp(recording)
     floor = Floor(*recording.scene.ground.plane()) if recording.scene.ground is not None else None
     scores = []
+    at_stamp = {} if truth is None else {int(stamp): k for k, stamp in enumerate(truth.stamps_ns)}
     for f, frame in enumerate(frames):
         if f >= len(prediction.times):
             break
@@ -90,8 +91,8 @@ def score_frames(prediction: Prediction, frames: Sequence[ObservedFrame], record
                 s.cd[object_id] = chamfer_distance(mine, geometry.occupancy)
                 if f % EMD_EVERY == 0:
                     s.emd[object_id] = emd(mine, geometry.occupancy)
-            if truth is not None and f < len(truth.positions):
-                s.cd_truth[object_id] = chamfer_distance(mine, truth.of_object(object_id)[f])
+            if frame.stamp_ns in at_stamp:  # the truth at the frame's stamp (a fit may start later)
+                s.cd_truth[object_id] = chamfer_distance(mine, truth.of_object(object_id)[at_stamp[frame.stamp_ns]])
         if render and frame.stamp_ns in images:
             _score_views(s, x, prediction, images[frame.stamp_ns], recording, spacing, floor)
         scores.append(s)
