@@ -143,6 +143,10 @@ class LiftingConfig:
     consensus_max_removed: float = _param(
         0.05, "Largest fraction of an object's voxels one later frame may remove; a frame that would "
         "remove more (the object deformed or turned) is not used for it.", 0.0, 1.0)
+    border_wait: int = _param(
+        5, "Frames after the first complete one in which to look for one that no image border cuts "
+        "(an object's part beyond the border is not reconstructed); the first such is lifted, else the "
+        "first complete one; 0 = lift the first complete frame.", 0, 1000)
     consensus_timeout: float = _param(
         5.0, "lifting_node: seconds to wait for the later frames after the first complete one; "
         "then lift with those that came.", 0.0, 600.0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -13,8 +14,8 @@ from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rosbags_types
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene, SceneObject
-from mosiv_ros.lifting import LiftedParticles, boundary_volume, lift, lift_first_complete
-from mosiv_ros.recon import VOXEL_FIELD, ObjectGeometry, ObservedFrame, reconstruct_recording
+from mosiv_ros.lifting import LiftedParticles, boundary_volume, lift, lift_choice, lift_first_complete
+from mosiv_ros.recon import VOXEL_FIELD, ObjectGeometry, ObservedFrame, cut_objects, reconstruct_recording
 
 VOXEL = 0.005
 FINE = LiftingConfig(particle_spacing=0.004)  # a lattice finer than the voxels
@@ -213,6 +214,26 @@ def test_lifting_waits_for_the_first_frame_with_every_declared_object():
     assert lifted.stamp_ns == 2 and lifted.object_ids == [1, 2]
     with pytest.raises(ValueError, match="every declared object"):
         lift_first_complete(frames[:1], FINE, SCENE)
+
+
+def test_lifting_takes_the_first_frame_that_no_image_border_cuts_within_border_wait():
+    a, b = ball((0.0, 0.0, 0.1), 0.03), ball((0.1, 0.0, 0.1), 0.02)
+
+    def frame(stamp, cut=()):
+        geometry = {i: ObjectGeometry(i, pts, np.zeros((0, 3)), VOXEL) for i, pts in ((1, a), (2, b))}
+        return ObservedFrame(stamp, geometry, cut={i: ("cam0",) for i in cut})
+
+    frames = [frame(1, cut=[2]), frame(2, cut=[2]), frame(3), frame(4)]
+    clouds = [f.to_cloud() for f in frames]
+    assert cut_objects(clouds[0]) == [2] and cut_objects(clouds[2]) == []
+    assert ObservedFrame.from_cloud(clouds[0]).cut == {2: ()}  # the cloud carries the cut, not the cameras
+    assert lift_first_complete(frames, FINE, SCENE).stamp_ns == 3
+    assert lift_first_complete(frames, replace(FINE, border_wait=1), SCENE).stamp_ns == 1  # not waited for
+    assert lift_first_complete(frames[:2], FINE, SCENE).stamp_ns == 1  # none whole: the first complete
+    # as lifting_node decides, cloud by cloud: wait while every cloud so far is cut
+    assert lift_choice(clouds[:1], SCENE, 5) is None and lift_choice(clouds[:2], SCENE, 5) is None
+    assert lift_choice(clouds[:3], SCENE, 5) == 2
+    assert lift_choice(clouds[:2], SCENE, 1) == 0  # waited border_wait frames: the first
 
 
 def test_lifting_rejects_a_cloud_without_voxels_clearly():

@@ -66,6 +66,7 @@ INTEGER_CLOUD_FIELDS: dict[str, np.dtype] = {
     "segment": np.dtype(np.uint16),
     "rgb": np.dtype(np.uint32),
     "track_id": np.dtype(np.uint32),
+    "cut": np.dtype(np.uint8),
 }
 """PointCloud2 fields written as unsigned integers."""
 FLOAT64_CLOUD_FIELDS = ("boundary_beta", "boundary_eps")

@@ -11,9 +11,10 @@ from mosiv_ros.lifting.lift import (
     LiftedParticles,
     boundary_volume,
     lift,
+    lift_choice,
     lift_first_complete,
     missing_objects,
 )
 
-__all__ = ["UNKNOWN_MATERIAL", "LiftedParticles", "boundary_volume", "lift", "lift_first_complete",
+__all__ = ["UNKNOWN_MATERIAL", "LiftedParticles", "boundary_volume", "lift", "lift_choice", "lift_first_complete",
            "missing_objects"]

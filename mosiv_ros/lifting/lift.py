@@ -31,7 +31,6 @@ What it is not for: reconstruction (``mosiv_ros.recon``) or the simulator itself
 
 from __future__ import annotations
 
-import itertools
 import logging
 import time
 from collections.abc import Iterable, Mapping, Sequence
@@ -45,7 +44,15 @@ from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene
 from mosiv_ros.lifting.consensus import consensus
 from mosiv_ros.lifting.density import Box, occupancy_on_lattice, refine_density, signed_distance, voxel_surface_distance
-from mosiv_ros.recon.reconstruct import COLOUR_FIELD, VOXEL_FIELD, ObservedFrame, ground_plane, pack_rgb, unpack_rgb
+from mosiv_ros.recon.reconstruct import (
+    COLOUR_FIELD,
+    VOXEL_FIELD,
+    ObservedFrame,
+    cut_objects,
+    ground_plane,
+    pack_rgb,
+    unpack_rgb,
+)
 
 _LOG = logging.getLogger(__name__)
 
@@ -267,28 +274,55 @@ def missing_objects(cloud: PointCloud, scene: Scene | None) -> list[int]:
     return sorted(set(scene.ids) - set(np.unique(cloud.object_id[voxel]).tolist()))
 
 
+def complete(cloud: PointCloud, scene: Scene | None) -> bool:
+    """Whether an observed cloud can be lifted: each declared object (or any) has a voxel."""
+    return not missing_objects(cloud, scene) and bool(np.any(np.asarray(cloud.fields.get(VOXEL_FIELD, 0)) > 0))
+
+
+def lift_choice(clouds: Sequence[PointCloud], scene: Scene | None, border_wait: int) -> int | None:
+    """Which cloud to lift, ``clouds`` being the observed ones from the first complete one on.
+
+    The first complete cloud that no image border cuts (``recon.cut_objects``: an object's part
+    beyond the border is not reconstructed) among the first ``border_wait + 1``; the first
+    cloud when none of them is; None while fewer have come and none is.
+    """
+    for k, cloud in enumerate(clouds[:border_wait + 1]):
+        if complete(cloud, scene) and not cut_objects(cloud):
+            return k
+    return 0 if len(clouds) > border_wait else None
+
+
 def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
                         scene: Scene | None = None) -> LiftedParticles:
     """Stage 2 in-process, as ``lifting_node`` does it: lift the first complete frame.
 
     Complete: every declared object has an occupied voxel (without a declaration: any object).
-    The ``config.consensus_frames`` frames after it trim its hulls (``consensus``).
+    Of the first complete frame and the ``config.border_wait`` after it, the first that no image
+    border cuts is lifted instead (``lift_choice``). The ``config.consensus_frames`` frames after
+    the lifted one trim its hulls (``consensus``).
     """
-    frames = iter(frames)
-    for frame in frames:
-        cloud = frame.to_cloud()
-        missing = missing_objects(cloud, scene)
-        if missing or not np.any(np.asarray(cloud.fields[VOXEL_FIELD]) > 0):
-            _LOG.warning("stamp %d ns: objects %s not observed; waiting for a complete frame",
-                         cloud.stamp_ns, missing)
-            continue
-        later = [f.to_cloud() for f in itertools.islice(frames, max(config.consensus_frames, 0))]
-        lifted = lift(cloud, config, scene, later)
-        for message in lifted.warnings:
-            _LOG.warning(message)
-        _LOG.info("lifted stamp %d ns: %s", cloud.stamp_ns, lifted.summary())
-        return lifted
-    raise ValueError("no observed frame shows every declared object: nothing to lift")
+    clouds = [frame.to_cloud() for frame in frames]
+    first = next((k for k, cloud in enumerate(clouds) if complete(cloud, scene)), None)
+    if first is None:
+        raise ValueError("no observed frame shows every declared object: nothing to lift")
+    for cloud in clouds[:first]:
+        _LOG.warning("stamp %d ns: objects %s not observed; waiting for a complete frame",
+                     cloud.stamp_ns, missing_objects(cloud, scene))
+    chosen = first + (lift_choice(clouds[first:], scene, config.border_wait) or 0)
+    if chosen > first:
+        _LOG.warning("stamps %d-%d ns: an image border cuts objects %s; lifting stamp %d ns, which "
+                     "shows them whole", clouds[first].stamp_ns, clouds[chosen - 1].stamp_ns,
+                     cut_objects(clouds[first]), clouds[chosen].stamp_ns)
+    elif cut_objects(clouds[first]):
+        _LOG.warning("stamp %d ns: an image border cuts objects %s, and in each of the %d frames after it; "
+                     "lifting it, without their parts beyond the border", clouds[first].stamp_ns,
+                     cut_objects(clouds[first]), config.border_wait)
+    cloud = clouds[chosen]
+    lifted = lift(cloud, config, scene, clouds[chosen + 1:chosen + 1 + max(config.consensus_frames, 0)])
+    for message in lifted.warnings:
+        _LOG.warning(message)
+    _LOG.info("lifted stamp %d ns: %s", cloud.stamp_ns, lifted.summary())
+    return lifted
 
 
 def _keys(cells: np.ndarray) -> np.ndarray:

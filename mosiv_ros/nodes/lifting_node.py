@@ -6,10 +6,12 @@ the core's ``lift``, and publishes the particles once on ``/mosiv/particles``, l
 transient_local): a PointCloud2 in ``world`` with fields x, y, z, volume, sdf, lattice_volume
 (float32), object_id, segment (uint16), material (uint8, the family's index in
 ``mosiv_ros.io.scene.FAMILIES``, 255 = family not declared), and boundary_beta, boundary_eps
-(float64: the node's parameters, which the consumers' boundary volumes use). The next ``consensus_frames``
-clouds trim each object's hull first (``mosiv_ros.lifting.consensus``): the node lifts once they
-have come, or ``consensus_timeout`` seconds after the first complete frame with those that did.
-Later frames are ignored.
+(float64: the node's parameters, which the consumers' boundary volumes use). Where an image
+border cuts an object of the first complete frame (field ``cut``), the first of the next
+``border_wait`` frames that none cuts is lifted instead (``mosiv_ros.lifting.lift_choice``). The
+next ``consensus_frames`` clouds trim each object's hull first (``mosiv_ros.lifting.consensus``):
+the node lifts once they have come, or ``consensus_timeout`` seconds after the first complete
+frame with those that did. Later frames are ignored.
 """
 
 from __future__ import annotations
@@ -24,9 +26,9 @@ from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
-from mosiv_ros.lifting import lift, missing_objects
+from mosiv_ros.lifting import lift, lift_choice, missing_objects
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
-from mosiv_ros.recon import VOXEL_FIELD
+from mosiv_ros.recon import VOXEL_FIELD, cut_objects
 
 NAME = "lifting_node"
 SUMMARY = "fill each object's first observed frame with simulation particles (latched output)"
@@ -43,8 +45,8 @@ class LiftingNode(Node):
         self.types = rclpy_types()
         self.particles_pub = self.create_publisher(PointCloud2, "/mosiv/particles", LATCHED_QOS)
         self.lifted_stamp: int | None = None
-        self.first: PointCloud | None = None  # the first complete frame, waiting for later ones
-        self.later: list[PointCloud] = []
+        self.clouds: list[PointCloud] = []  # from the first complete frame on, until the lift
+        self.chosen: int | None = None  # which of them to lift, once known
         self.first_time = 0.0
         self.create_timer(0.1, self._lift_on_timeout)
         self.create_subscription(
@@ -55,36 +57,49 @@ class LiftingNode(Node):
     def _on_observed(self, cloud: PointCloud) -> None:
         if self.lifted_stamp is not None:
             return
-        if self.first is not None:
+        if self.clouds:
             if VOXEL_FIELD not in cloud.fields:
                 self.get_logger().warning(f"{TOPIC} stamp {cloud.stamp_ns} ns: no {VOXEL_FIELD!r} field; "
                                           "not used to trim the lifted frame")
-            elif cloud.stamp_ns > self.first.stamp_ns:
-                self.later.append(cloud)
-            if len(self.later) >= self.config.consensus_frames:
-                self._lift()
-            return
-        missing = missing_objects(cloud, self.scene)
-        if missing:
-            self.get_logger().warning(
-                f"{TOPIC} stamp {cloud.stamp_ns} ns: objects {missing} not observed; waiting for a "
-                "frame with every declared object")
-            return
-        self.first, self.first_time = cloud, time.monotonic()
-        if self.config.consensus_frames <= 0:
+                return
+            if cloud.stamp_ns <= self.clouds[-1].stamp_ns:
+                return
+            self.clouds.append(cloud)
+        else:
+            missing = missing_objects(cloud, self.scene)
+            if missing:
+                self.get_logger().warning(
+                    f"{TOPIC} stamp {cloud.stamp_ns} ns: objects {missing} not observed; waiting for a "
+                    "frame with every declared object")
+                return
+            self.clouds, self.first_time = [cloud], time.monotonic()
+        if self.chosen is None:
+            self.chosen = lift_choice(self.clouds, self.scene, self.config.border_wait)
+        if self.chosen is not None and len(self.clouds) - self.chosen - 1 >= self.config.consensus_frames:
             self._lift()
 
     def _lift_on_timeout(self) -> None:
-        if (self.first is not None and self.lifted_stamp is None
+        if (self.clouds and self.lifted_stamp is None
                 and time.monotonic() - self.first_time > self.config.consensus_timeout):
+            later = len(self.clouds) - (self.chosen or 0) - 1
             self.get_logger().warning(
-                f"{len(self.later)} of {self.config.consensus_frames} later frames came within "
-                f"{self.config.consensus_timeout} s of stamp {self.first.stamp_ns} ns; lifting with those")
+                f"{later} of {self.config.consensus_frames} later frames came within "
+                f"{self.config.consensus_timeout} s of stamp {self.clouds[0].stamp_ns} ns; lifting with those")
             self._lift()
 
     def _lift(self) -> None:
-        cloud, later = self.first, self.later
-        self.first, self.later = None, []
+        chosen = self.chosen or 0
+        cloud, later = self.clouds[chosen], self.clouds[chosen + 1:chosen + 1 + self.config.consensus_frames]
+        cut = cut_objects(self.clouds[0])
+        if chosen:
+            self.get_logger().warning(
+                f"{TOPIC} stamp {self.clouds[0].stamp_ns} ns: an image border cuts objects {cut}; lifting "
+                f"stamp {cloud.stamp_ns} ns, which shows them whole")
+        elif cut:
+            self.get_logger().warning(
+                f"{TOPIC} stamp {cloud.stamp_ns} ns: an image border cuts objects {cut}; lifting it without "
+                "their parts beyond the border")
+        self.clouds, self.chosen = [], None
         try:
             lifted = lift(cloud, self.config, self.scene, later)
         except ValueError as error:

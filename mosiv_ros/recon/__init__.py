@@ -9,14 +9,17 @@ and track errors against ground truth. No ROS here.
 
 from mosiv_ros.recon.reconstruct import (
     COLOUR_FIELD,
+    CUT_FIELD,
     VOXEL_FIELD,
     ObjectGeometry,
     ObservedFrame,
     Reconstructor,
+    cut_objects,
     iter_reconstruct,
     reconstruct_recording,
 )
 from mosiv_ros.recon.tracks import SurfaceTracker, SurfaceTracks, TrackPoints
 
-__all__ = ["COLOUR_FIELD", "VOXEL_FIELD", "ObjectGeometry", "ObservedFrame", "Reconstructor",
-           "SurfaceTracker", "SurfaceTracks", "TrackPoints", "iter_reconstruct", "reconstruct_recording"]
+__all__ = ["COLOUR_FIELD", "CUT_FIELD", "VOXEL_FIELD", "ObjectGeometry", "ObservedFrame", "Reconstructor",
+           "SurfaceTracker", "SurfaceTracks", "TrackPoints", "cut_objects", "iter_reconstruct",
+           "reconstruct_recording"]

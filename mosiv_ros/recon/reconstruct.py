@@ -51,6 +51,16 @@ VOXEL_FIELD = "voxel_size"
 """Cloud field: edge (m) of the voxel a point is the centre of; 0 for a surface point."""
 COLOUR_FIELD = "rgb"
 """Cloud field (uint32, 0x00RRGGBB, as rviz reads ``rgb``): the colour seen at a surface point."""
+CUT_FIELD = "cut"
+"""Cloud field (uint8): 1 on every point of an object an image border cuts in this frame set
+(``ObservedFrame.cut``: its part beyond the border is not reconstructed), else 0."""
+
+
+def cut_objects(cloud: PointCloud) -> list[int]:
+    """The ids of the objects an image border cuts in an observed cloud (none without CUT_FIELD)."""
+    if CUT_FIELD not in cloud.fields:
+        return []
+    return sorted(int(i) for i in np.unique(cloud.object_id[np.asarray(cloud.fields[CUT_FIELD]) > 0]))
 
 
 def pack_rgb(rgb: np.ndarray) -> np.ndarray:
@@ -110,7 +120,7 @@ class ObservedFrame:
         Per object (in id order) its voxel centres, then its surface points; the field
         ``voxel_size`` tells them apart (see VOXEL_FIELD). ``rgb`` (COLOUR_FIELD) holds each
         surface point's colour, 0 on voxel centres; it is left out when an object's colours are
-        not known.
+        not known. ``cut`` (CUT_FIELD) marks the objects an image border cuts.
         """
         xyz, ids, sizes = [np.zeros((0, 3))], [np.zeros(0, np.uint16)], [np.zeros(0, np.float32)]
         colours = [np.zeros(0, np.uint32)]
@@ -123,14 +133,20 @@ class ObservedFrame:
             colours += [np.zeros(len(geometry.occupancy), np.uint32),
                         pack_rgb(geometry.colour if geometry.colour is not None
                                  else np.zeros((len(geometry.surface), 3), np.uint8))]
-        fields = {VOXEL_FIELD: np.concatenate(sizes)}
+        ids = np.concatenate(ids)
+        fields = {VOXEL_FIELD: np.concatenate(sizes),
+                  CUT_FIELD: np.isin(ids, np.array(sorted(self.cut), dtype=np.int64)).astype(np.uint8)}
         if all(g.colour is not None for g in self.objects.values()):
             fields[COLOUR_FIELD] = np.concatenate(colours)
-        return PointCloud(np.concatenate(xyz), np.concatenate(ids), fields, stamp_ns=self.stamp_ns)
+        return PointCloud(np.concatenate(xyz), ids, fields, stamp_ns=self.stamp_ns)
 
     @classmethod
     def from_cloud(cls, cloud: PointCloud) -> ObservedFrame:
-        """An ``/mosiv/observed_objects`` cloud back as a frame (without masks)."""
+        """An ``/mosiv/observed_objects`` cloud back as a frame (without masks).
+
+        ``cut`` holds the objects an image border cuts, without the cameras (the cloud does not
+        name them).
+        """
         if VOXEL_FIELD not in cloud.fields:
             raise ValueError(f"observed cloud lacks the field {VOXEL_FIELD!r}")
         sizes = np.asarray(cloud.fields[VOXEL_FIELD], dtype=np.float64)
@@ -145,7 +161,7 @@ class ObservedFrame:
             objects[int(object_id)] = ObjectGeometry(int(object_id), cloud.xyz[voxel].astype(np.float64),
                                                      cloud.xyz[surface].astype(np.float64), size,
                                                      colour=colour)
-        return cls(cloud.stamp_ns, objects)
+        return cls(cloud.stamp_ns, objects, cut={i: () for i in cut_objects(cloud)})
 
     def summary(self) -> str:
         """One line: per object voxels, surface points and volume; the time taken."""
