@@ -10,7 +10,7 @@ from recon_scenes import ball_points, sphere_recording, time_of, touching_pair
 
 from mosiv_ros.config import ReconstructionConfig
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rosbags_types
-from mosiv_ros.recon import COLOUR_FIELD, VOXEL_FIELD, reconstruct_recording
+from mosiv_ros.recon import COLOUR_FIELD, CUT_FIELD, VOXEL_FIELD, ObservedFrame, reconstruct_recording
 from mosiv_ros.recon.evaluation import chamfer_figure
 from mosiv_ros.recon.reconstruct import unpack_rgb
 from mosiv_ros.synth.shapes import GRAVITY, Sphere, ring_camera_pose, shapes_spheres
@@ -138,10 +138,12 @@ def test_depth_carves_the_visual_hull_towards_the_true_volume():
 def test_observed_cloud_lists_objects_apart_and_round_trips_through_pointcloud2(sample_scene):
     _, recording = sample_scene
     frame = reconstruct_recording(recording, ReconstructionConfig())[0]
+    frame.cut = {2: ("cam0",)}  # as if an image border cut object 2
     cloud = frame.to_cloud()
     msg = pointcloud_to_msg(rosbags_types(), cloud.xyz, cloud.object_id, cloud.stamp_ns,
                             "world", cloud.fields)
-    assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", VOXEL_FIELD, COLOUR_FIELD]
+    assert [f.name for f in msg.fields] == ["x", "y", "z", "object_id", VOXEL_FIELD, CUT_FIELD, COLOUR_FIELD]
+    assert msg.fields[5].datatype == 2  # PointField.UINT8
     back = pointcloud_from_msg(msg)
     np.testing.assert_array_equal(back.xyz, cloud.xyz)
     np.testing.assert_array_equal(back.object_id, cloud.object_id)
@@ -154,6 +156,7 @@ def test_observed_cloud_lists_objects_apart_and_round_trips_through_pointcloud2(
         np.testing.assert_array_equal(unpack_rgb(back.fields[COLOUR_FIELD][mine & ~voxels]), geometry.colour)
     assert set(np.unique(back.object_id).tolist()) == {1, 2, 3}
     assert back.stamp_ns == frame.stamp_ns
+    assert ObservedFrame.from_cloud(back).cut == {2: ()}  # the cut object, without its cameras
 
 
 def test_each_objects_voxels_project_inside_its_own_or_an_occluding_silhouette(sample_scene):
