@@ -14,7 +14,7 @@ from mosiv_ros.config import LiftingConfig, ReconstructionConfig
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rosbags_types
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import FAMILIES, Scene, SceneObject
-from mosiv_ros.lifting import LiftedParticles, boundary_volume, lift, lift_choice, lift_first_complete
+from mosiv_ros.lifting import LiftedParticles, border_note, boundary_volume, lift, lift_choice, lift_first_complete
 from mosiv_ros.recon import VOXEL_FIELD, ObjectGeometry, ObservedFrame, cut_objects, reconstruct_recording
 
 VOXEL = 0.005
@@ -234,6 +234,11 @@ def test_lifting_takes_the_first_frame_that_no_image_border_cuts_within_border_w
     assert lift_choice(clouds[:1], SCENE, 5) is None and lift_choice(clouds[:2], SCENE, 5) is None
     assert lift_choice(clouds[:3], SCENE, 5) == 2
     assert lift_choice(clouds[:2], SCENE, 1) == 0  # waited border_wait frames: the first
+    # the warning both say: which stamp is lifted instead, or that the cut one is lifted as it is
+    assert border_note(clouds, 2) == ("stamp 1 ns: an image border cuts objects [2]; lifting stamp 3 ns, "
+                                      "which shows them whole")
+    assert "without their parts beyond the border" in border_note(clouds, 0)
+    assert border_note(clouds[2:], 0) is None
 
 
 def test_lifting_rejects_a_cloud_without_voxels_clearly():

@@ -9,6 +9,7 @@ simulator.
 from mosiv_ros.lifting.lift import (
     UNKNOWN_MATERIAL,
     LiftedParticles,
+    border_note,
     boundary_volume,
     lift,
     lift_choice,
@@ -16,5 +17,5 @@ from mosiv_ros.lifting.lift import (
     missing_objects,
 )
 
-__all__ = ["UNKNOWN_MATERIAL", "LiftedParticles", "boundary_volume", "lift", "lift_choice", "lift_first_complete",
-           "missing_objects"]
+__all__ = ["UNKNOWN_MATERIAL", "LiftedParticles", "border_note", "boundary_volume", "lift", "lift_choice",
+           "lift_first_complete", "missing_objects"]

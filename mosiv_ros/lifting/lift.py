@@ -292,6 +292,21 @@ def lift_choice(clouds: Sequence[PointCloud], scene: Scene | None, border_wait: 
     return 0 if len(clouds) > border_wait else None
 
 
+def border_note(clouds: Sequence[PointCloud], chosen: int) -> str | None:
+    """The warning for lifting ``clouds[chosen]`` (``lift_choice``) of ``clouds`` from the first complete one.
+
+    None where no image border cuts an object of that first one.
+    """
+    cut = cut_objects(clouds[0])
+    if chosen:
+        return (f"stamp {clouds[0].stamp_ns} ns: an image border cuts objects {cut}; lifting stamp "
+                f"{clouds[chosen].stamp_ns} ns, which shows them whole")
+    if cut:
+        return (f"stamp {clouds[0].stamp_ns} ns: an image border cuts objects {cut}, and every frame waited "
+                "for; lifting it without their parts beyond the border")
+    return None
+
+
 def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
                         scene: Scene | None = None) -> LiftedParticles:
     """Stage 2 in-process, as ``lifting_node`` does it: lift the first complete frame.
@@ -308,15 +323,11 @@ def lift_first_complete(frames: Iterable[ObservedFrame], config: LiftingConfig,
     for cloud in clouds[:first]:
         _LOG.warning("stamp %d ns: objects %s not observed; waiting for a complete frame",
                      cloud.stamp_ns, missing_objects(cloud, scene))
-    chosen = first + (lift_choice(clouds[first:], scene, config.border_wait) or 0)
-    if chosen > first:
-        _LOG.warning("stamps %d-%d ns: an image border cuts objects %s; lifting stamp %d ns, which "
-                     "shows them whole", clouds[first].stamp_ns, clouds[chosen - 1].stamp_ns,
-                     cut_objects(clouds[first]), clouds[chosen].stamp_ns)
-    elif cut_objects(clouds[first]):
-        _LOG.warning("stamp %d ns: an image border cuts objects %s, and in each of the %d frames after it; "
-                     "lifting it, without their parts beyond the border", clouds[first].stamp_ns,
-                     cut_objects(clouds[first]), config.border_wait)
+    clouds = clouds[first:]
+    chosen = lift_choice(clouds, scene, config.border_wait) or 0
+    note = border_note(clouds, chosen)
+    if note:
+        _LOG.warning(note)
     cloud = clouds[chosen]
     lifted = lift(cloud, config, scene, clouds[chosen + 1:chosen + 1 + max(config.consensus_frames, 0)])
     for message in lifted.warnings:

@@ -26,9 +26,9 @@ from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.messages import pointcloud_from_msg, pointcloud_to_msg, rclpy_types
 from mosiv_ros.io.recording import PointCloud
 from mosiv_ros.io.scene import Scene
-from mosiv_ros.lifting import lift, lift_choice, missing_objects
+from mosiv_ros.lifting import border_note, lift, lift_choice, missing_objects
 from mosiv_ros.nodes.common import LATCHED_QOS, STREAM_QOS, declare_config, guarded, main_for
-from mosiv_ros.recon import VOXEL_FIELD, cut_objects
+from mosiv_ros.recon import VOXEL_FIELD
 
 NAME = "lifting_node"
 SUMMARY = "fill each object's first observed frame with simulation particles (latched output)"
@@ -90,15 +90,9 @@ class LiftingNode(Node):
     def _lift(self) -> None:
         chosen = self.chosen or 0
         cloud, later = self.clouds[chosen], self.clouds[chosen + 1:chosen + 1 + self.config.consensus_frames]
-        cut = cut_objects(self.clouds[0])
-        if chosen:
-            self.get_logger().warning(
-                f"{TOPIC} stamp {self.clouds[0].stamp_ns} ns: an image border cuts objects {cut}; lifting "
-                f"stamp {cloud.stamp_ns} ns, which shows them whole")
-        elif cut:
-            self.get_logger().warning(
-                f"{TOPIC} stamp {cloud.stamp_ns} ns: an image border cuts objects {cut}; lifting it without "
-                "their parts beyond the border")
+        note = border_note(self.clouds, chosen)
+        if note:
+            self.get_logger().warning(f"{TOPIC} {note}")
         self.clouds, self.chosen = [], None
         try:
             lifted = lift(cloud, self.config, self.scene, later)

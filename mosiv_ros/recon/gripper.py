@@ -33,12 +33,13 @@ def gripper_at(poses: Sequence[tuple[int, np.ndarray]], stamp_ns: int) -> np.nda
     """
     if not poses:
         return None
-    T = np.array([pose for _, pose in poses], dtype=np.float64)
     stamps = np.array([stamp for stamp, _ in poses], dtype=np.int64)
     i, s = segment(stamps, stamp_ns)
     if s == 0.0:  # at or beyond a pose: that pose, exactly
-        return T[i]
-    position, quaternion = pose_at(stamps, T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat(), stamp_ns)
+        return np.array(poses[i][1], dtype=np.float64)
+    pair = np.array([poses[i][1], poses[i + 1][1]], dtype=np.float64)  # the two poses around the stamp
+    position, quaternion = pose_at(stamps[i:i + 2], pair[:, :3, 3], Rotation.from_matrix(pair[:, :3, :3]).as_quat(),
+                                   stamp_ns)
     out = np.eye(4)
     out[:3, :3], out[:3, 3] = Rotation.from_quat(quaternion).as_matrix(), position
     return out
