@@ -40,10 +40,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import warp as wp
 from scipy.spatial import cKDTree
 
 from mosiv_ros.config import LossConfig
 from mosiv_ros.identify.observations import MaskTensors, ObservedTensors, TrackAttachment, TrackTensors, View
+from mosiv_ros.sim.runtime import load_modules, resolve_device
 
 SPLAT_OPACITY = 0.9
 
@@ -119,9 +121,6 @@ NEAREST_BLOCK = (16, 128)
 block and an exhaustive search of the few blocks near it; about sqrt(M) / 2 targets a block (M
 the targets) kept that lowest on elastic_on_plastic (a clay particle: 240 bounds and 650
 distances, not 15,000 distances, to the clay's 15,000 observed points)."""
-NEAREST_BUDGET = 1 << 25
-"""Query-block pairs (bounds), or query-point pairs (squared distances), ``nearest`` takes at
-once; each holds some 40 to 60 bytes while it does (1.3 to 2 GB)."""
 
 
 def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -180,26 +179,75 @@ def _target_blocks(targets: torch.Tensor, valid: torch.Tensor):
     return points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid
 
 
-def _block_squared(q: torch.Tensor, points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """(..., S) squared distances of queries (..., 3) to blocks of points (..., S, 3).
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return __dadd_rn(__dadd_rn(__dmul_rn(d[0], d[0]), __dmul_rn(d[1], d[1])), __dmul_rn(d[2], d[2]));
+#else
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    return (d[0] * d[0] + d[1] * d[1]) + d[2] * d[2];
+#endif
+""")
+def _rounded_squared(d: wp.vec3d) -> wp.float64:
+    """(dx dx + dy dy) + dz dz with every product and sum rounded on its own, as ``_squared`` sums.
 
-    inf where a point is not ``valid``.
+    Spelled out because a compiler may fuse a product into the next sum (a fused multiply-add,
+    rounded once), which can break a tie the KD-tree and the torch sums see.
     """
-    return torch.where(valid, _squared(q[..., None, :], points), math.inf)
+    ...
 
 
-def _box_squared(q: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """(J, c, B) squared distances of queries (J, c, 3) to boxes (J, B, 3), at most any point's in a box.
+@wp.func
+def _box_bound(q: wp.vec3d, lo: wp.vec3d, hi: wp.vec3d):
+    """Squared distance of ``q`` to the box [lo, hi], summed as ``_rounded_squared``.
 
-    Summed as ``_squared`` sums, of gaps rounded as a point's differences are: rounding is
-    monotone, so no point of a box is nearer than its box.
+    At most any point's in the box (rounding is monotone); inf for an empty block (lo +inf,
+    hi -inf).
     """
-    total = None
-    for axis in range(3):  # one axis at a time: (J, c, B) temporaries, not (J, c, B, 3)
-        qa = q[:, :, None, axis]
-        gap = torch.maximum(lo[:, None, :, axis] - qa, qa - hi[:, None, :, axis]).clamp_(min=0)
-        total = gap * gap if total is None else total + gap * gap
-    return total
+    zero = wp.float64(0.0)
+    gap = wp.vec3d(wp.max(wp.max(lo[0] - q[0], q[0] - hi[0]), zero),
+                   wp.max(wp.max(lo[1] - q[1], q[1] - hi[1]), zero),
+                   wp.max(wp.max(lo[2] - q[2], q[2] - hi[2]), zero))
+    return _rounded_squared(gap)
+
+
+@wp.kernel(enable_backward=False)
+def _nearest_in_blocks(queries: wp.array2d(dtype=wp.vec3d), query_valid: wp.array2d(dtype=wp.uint8),
+                       points: wp.array3d(dtype=wp.vec3d), point_valid: wp.array3d(dtype=wp.uint8),
+                       order: wp.array3d(dtype=wp.int64), lo: wp.array2d(dtype=wp.vec3d),
+                       hi: wp.array2d(dtype=wp.vec3d), centroid: wp.array2d(dtype=wp.vec3d),
+                       best: wp.array2d(dtype=wp.float64), index: wp.array2d(dtype=wp.int64)):
+    """One thread per (job, query): ``nearest``'s search (its docstring), -1 where nothing was found."""
+    j, i = wp.tid()
+    found = wp.int32(0)
+    near = wp.float64(0.0)
+    lowest = wp.int64(-1)
+    if query_valid[j, i] != wp.uint8(0):
+        q = queries[j, i]
+        blocks = points.shape[1]
+        first = wp.int32(0)
+        closest = wp.float64(0.0)
+        for b in range(blocks):  # the block of nearest centroid: a choice, so any sum will do
+            c = wp.length_sq(q - centroid[j, b])
+            if b == 0 or c < closest:
+                closest = c
+                first = b
+        for k in range(blocks + 1):  # that block first, then every other one its box does not rule out
+            b = first
+            if k > 0:
+                b = k - 1
+            if k == 0 or (b != first and (found == 0 or _box_bound(q, lo[j, b], hi[j, b]) <= near)):
+                for s in range(points.shape[2]):
+                    if point_valid[j, b, s] != wp.uint8(0):
+                        d = _rounded_squared(q - points[j, b, s])
+                        t = order[j, b, s]
+                        if found == 0 or d < near or (d == near and t < lowest):
+                            found = 1
+                            near = d
+                            lowest = t
+    best[j, i] = near
+    index[j, i] = lowest
 
 
 def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Tensor,
@@ -211,50 +259,37 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
     (J, N) and the index into ``targets`` (J, N) of each query's nearest target: the lowest index
     among equally near ones (a KD-tree takes any of them); inf and -1 for an invalid query or a
     job without a valid target. Distances are summed as the KD-tree sums them, (dx^2 + dy^2) +
-    dz^2, so that the two find equally near targets.
+    dz^2, each product and sum rounded on its own, so that the two find equally near targets.
 
-    The targets are sorted into blocks along a Z-order curve (``_target_blocks``). A query's
-    distance to the points of the block whose centroid is nearest to it bounds its nearest
-    distance from above; only the blocks whose bounding box lies within that bound are searched,
-    each exhaustively. The box distances are rounded down as the point distances are (both are the
-    same sums of monotone roundings), so no block that holds the nearest target is skipped.
+    The targets are sorted into blocks along a Z-order curve (``_target_blocks``). One thread per
+    query (a Warp kernel on the tensors' device, in torch's stream) searches the block whose
+    centroid is nearest to it exhaustively, then every other block whose bounding box is no
+    farther than the nearest target found so far. The box distances are rounded down as the point
+    distances are (both are the same sums of monotone roundings), so no block that holds the
+    nearest target, or one as near with a lower index, is skipped.
     """
     n_jobs, n = query_valid.shape
     device = queries.device
     points, valid, order, lo, hi, centroid = _target_blocks(targets, target_valid)
-    far = (centroid * centroid).sum(dim=2)
-    blocks, size = valid.shape[1:]
-    best = torch.full((n_jobs, n), math.inf, dtype=torch.float64, device=device)
-    index = torch.full((n_jobs, n), -1, dtype=torch.long, device=device)
-    jobs = torch.arange(n_jobs, device=device)[:, None]
-    beyond = torch.iinfo(torch.long).max
-    step = max(1, NEAREST_BUDGET // (n_jobs * (blocks + size)))
-    for first in range(0, n, step):
-        q = queries[:, first:first + step]
-        c = q.shape[1]
-        lower = _box_squared(q, lo, hi)  # (J, c, B)
-        # the block of nearest centroid (by |c|^2 - 2 q.c: a choice, not a distance, needs no exactness)
-        closest = torch.baddbmm(far[:, None], q, centroid.transpose(1, 2), alpha=-2.0).argmin(dim=2)
-        bound = _block_squared(q, points[jobs, closest], valid[jobs, closest]).amin(dim=2)
-        keep = (lower <= bound[..., None]) & torch.isfinite(lower) & query_valid[:, first:first + c, None]
-        j, i, b = keep.nonzero(as_tuple=True)
-        low = torch.empty(len(j), dtype=torch.float64, device=device)
-        lowest = torch.empty(len(j), dtype=torch.long, device=device)
-        pairs = max(1, NEAREST_BUDGET // size)
-        for p in range(0, len(j), pairs):
-            jp, ip, bp = j[p:p + pairs], i[p:p + pairs], b[p:p + pairs]
-            d2 = _block_squared(q[jp, ip], points[jp, bp], valid[jp, bp])
-            low[p:p + pairs] = d2.amin(dim=1)
-            lowest[p:p + pairs] = torch.where(d2 == low[p:p + pairs, None], order[jp, bp], beyond).amin(dim=1)
-        slot = j * c + i
-        near = torch.full((n_jobs * c,), math.inf, dtype=torch.float64, device=device)
-        near = near.scatter_reduce(0, slot, low, "amin")
-        tied = low == near[slot]
-        found = torch.full((n_jobs * c,), beyond, dtype=torch.long, device=device)
-        found = found.scatter_reduce(0, slot[tied], lowest[tied], "amin")
-        best[:, first:first + c] = near.view(n_jobs, c)
-        index[:, first:first + c] = torch.where(found < beyond, found, -1).view(n_jobs, c)
-    return best, index
+    best = torch.empty((n_jobs, n), dtype=torch.float64, device=device)
+    index = torch.empty((n_jobs, n), dtype=torch.long, device=device)
+    if n_jobs and n:
+        where = resolve_device("cpu" if device.type == "cpu" else f"cuda:{device.index or 0}")
+        load_modules(where, [__name__])
+        args = [wp.from_torch(queries.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(query_valid.to(torch.uint8).contiguous()),
+                wp.from_torch(points.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(valid.to(torch.uint8).contiguous()),
+                wp.from_torch(order.contiguous()), wp.from_torch(lo.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(hi.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(centroid.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(best), wp.from_torch(index)]
+        if device.type == "cpu":
+            wp.launch(_nearest_in_blocks, dim=(n_jobs, n), inputs=args, device=where)
+        else:
+            with wp.ScopedStream(wp.stream_from_torch(device)):
+                wp.launch(_nearest_in_blocks, dim=(n_jobs, n), inputs=args, device=where)
+    return torch.where(index >= 0, best, math.inf), index
 
 
 def _take(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
