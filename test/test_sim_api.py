@@ -402,3 +402,31 @@ def test_the_parts_of_a_launch_run_every_particle_once_on_replicas_of_their_own(
     out = wp.zeros(total, dtype=int, device="cpu")
     wp.launch(_lane_particles, dim=total, inputs=[0, 1], outputs=[out], device="cpu")
     assert out.numpy().tolist() == list(range(total))  # one part: particle t, as before the parts
+
+
+def test_a_process_loading_kernels_waits_while_another_holds_the_kernel_cache(tmp_path):
+    # sim.runtime: one process builds a module into the cache while the others wait for its lock
+    # file, then load what it built (here this test holds the lock for 2 s)
+    import fcntl
+    import os
+    import subprocess
+    import sys
+    import time
+
+    cache = tmp_path / "kernels"
+    cache.mkdir()
+    env = dict(os.environ, WARP_CACHE_PATH=str(cache))
+    code = ("import logging, sys; logging.basicConfig(level=logging.INFO, stream=sys.stdout); "
+            "from mosiv_ros.sim.simulator import load_kernels; print('imported', flush=True); "
+            "load_kernels('cpu')")
+    with open(cache / ".mosiv-build.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        child = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+        assert child.stdout.readline().strip() == "imported"
+        time.sleep(2.0)
+        assert child.poll() is None  # still waiting for the lock
+        fcntl.flock(lock, fcntl.LOCK_UN)
+    out, _ = child.communicate(timeout=600)
+    assert child.returncode == 0
+    assert "waited" in out and "for another process building kernels into the cache" in out
+    assert "kernels ready on cpu" in out

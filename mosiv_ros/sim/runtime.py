@@ -14,6 +14,10 @@ Three things every simulation needs before its first launch, each done once per 
   simulator per CPU core, and on an empty cache their first launches built the same module at
   once, which crashed (an LLVM "IO failure on output stream", or "Referencing undefined
   symbol" errors from the code generator). Loaded up front, a launch only looks its module up.
+  Between processes (the nodes of a graph, the workers of a batch) a lock file in the kernel
+  cache does the same: one builds a module, the others wait and then load it from the cache,
+  instead of each building its own copy (Warp's per-process build directories made that safe,
+  but on two cores a second build doubled the wait).
 
 What it is not for: simulation itself (``simulator``) or choosing a torch device.
 """
@@ -127,20 +131,42 @@ def _note_once(device: str) -> None:
         _LOG.info("simulating on %s (%s)", device, wp.get_device(device).name)
 
 
+@contextlib.contextmanager
+def _cache_lock() -> Iterator[None]:
+    """Hold the kernel cache's lock file (POSIX; elsewhere only the process-wide lock holds)."""
+    try:
+        import fcntl
+    except ImportError:
+        yield
+        return
+    os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
+    with open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def load_modules(device: str, modules: Iterable[types.ModuleType | str]) -> None:
-    """Compile if needed and load the Warp kernels of ``modules`` on ``device``, thread-safely."""
+    """Compile if needed and load the Warp kernels of ``modules`` on ``device``, thread- and process-safely."""
     names = list(dict.fromkeys(m if isinstance(m, str) else m.__name__ for m in modules))
     with _LOCK:
         new = [name for name in names if (device, name) not in _loaded]
         if not new:
             return
-        _LOG.info("loading the simulator's kernels on %s (compiled into the kernel cache %s "
-                  "when not there yet)", device, wp.config.kernel_cache_dir)
-        began = time.perf_counter()
-        for name in new:
-            module = wp.context.user_modules.get(name)
-            if module is not None and module.kernels:  # a module of functions only is built into its users
-                if module.load(wp.get_device(device)) is None:
-                    raise RuntimeError(f"Warp could not build the kernels of {name} on {device}")
-            _loaded.add((device, name))
-        _LOG.info("kernels ready on %s in %.1f s", device, time.perf_counter() - began)
+        asked = time.perf_counter()
+        with _cache_lock():
+            began = time.perf_counter()
+            if began - asked > 0.5:
+                _LOG.info("waited %.1f s for another process building kernels into the cache",
+                          began - asked)
+            _LOG.info("loading the simulator's kernels on %s (compiled into the kernel cache %s "
+                      "when not there yet)", device, wp.config.kernel_cache_dir)
+            for name in new:
+                module = wp.context.user_modules.get(name)
+                if module is not None and module.kernels:  # a module of functions only is built into its users
+                    if module.load(wp.get_device(device)) is None:
+                        raise RuntimeError(f"Warp could not build the kernels of {name} on {device}")
+                _loaded.add((device, name))
+            _LOG.info("kernels ready on %s in %.1f s", device, time.perf_counter() - began)

@@ -426,6 +426,15 @@ def _add_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.ar
     out[i] = a[i] + b[i]
 
 
+def load_kernels(device: str, effects: Sequence[Effect] = ()) -> None:
+    """Build and load every kernel a simulation on ``device`` with ``effects`` may launch.
+
+    Built into the kernel cache when not there yet; before any launch (``sim.runtime`` says why).
+    """
+    load_modules(resolve_device(device), [kernels.__name__, Parameters.__module__, Effect.__module__,
+                                          __name__, *(type(e).__module__ for e in effects)])
+
+
 class Simulator:
     """One scene, B parameter sets; see the module docstring."""
 
@@ -436,9 +445,7 @@ class Simulator:
         self.n_batch = int(n_batch)
         self.device = resolve_device(config.device)
         self._check_scene(particles)
-        # every kernel this simulator may launch, built before any launch (sim.runtime says why)
-        load_modules(self.device, [kernels.__name__, Parameters.__module__, Effect.__module__,
-                                   __name__, *(type(e).__module__ for e in config.effects)])
+        load_kernels(self.device, config.effects)
         self.n_particles = len(particles.x)
         self.n_objects = len(self.objects)
         self.dx = float(config.dx)
