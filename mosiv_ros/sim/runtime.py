@@ -133,15 +133,27 @@ def _note_once(device: str) -> None:
 
 @contextlib.contextmanager
 def _cache_lock() -> Iterator[None]:
-    """Hold the kernel cache's lock file (POSIX; elsewhere only the process-wide lock holds)."""
+    """Hold the kernel cache's lock file.
+
+    Where there is none to hold (not POSIX, a read-only cache, a file system without locks) only
+    the process-wide lock holds, as Warp's per-process build directories keep a build safe.
+    """
     try:
         import fcntl
-    except ImportError:
+
+        os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
+        handle = open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a")  # noqa: SIM115
+    except (ImportError, OSError) as error:
+        _LOG.debug("kernel cache not locked between processes: %s", error)
         yield
         return
-    os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
-    with open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
+    with handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError as error:
+            _LOG.debug("kernel cache not locked between processes: %s", error)
+            yield
+            return
         try:
             yield
         finally:
