@@ -32,11 +32,13 @@ mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two object
 corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
-accumulations are ``wp.atomic_add``. No kernel loops over objects (Warp's adjoint does not
-support dynamic loops that carry state): the sums over a node's fields are atomics in
-``node_mass`` and ``contact_totals``, and ``grid_update`` runs one thread per field node. These
-three launch over a box of nodes (``field_node``): the whole grid, or on the CPU, where every
-thread costs, the nodes the particles' stencils can reach (``Simulator._active_box``).
+accumulations are ``wp.atomic_add``. Warp's adjoint does not support dynamic loops that carry a
+differentiable value, so the differentiable sums over a node's fields are atomics in
+``contact_totals``, and ``grid_update`` runs one thread per field node; the loops over a node's
+fields (``node_total``, ``present_fields``) give only thresholds and integers, and sit in
+functions, whose calls the adjoint replays as the forward ran them. Both passes launch over a
+box of nodes (``field_node``): the whole grid, or on the CPU, where every thread costs, the
+nodes the particles' stencils can reach (``Simulator._active_box``).
 """
 
 from __future__ import annotations
@@ -285,15 +287,34 @@ def collider_sdf(shape: int, size: wp.vec3, p: wp.vec3):
     return wp.vec4(d, n[0], n[1], n[2])
 
 
-@wp.kernel
-def node_mass(grid_m: wp.array(dtype=float), n_nodes: int, n_objects: int, dims: wp.vec3i,
-              box_lo: wp.vec3i, box_dims: wp.vec3i, grid_node_m: wp.array(dtype=float)):
-    """Total mass of all object fields at each node (contact pass 1, one thread per field node)."""
-    i = field_node(wp.tid(), box_lo, box_dims, dims)
-    m = grid_m[i]
-    if m > 0.0:
-        batch = i // (n_objects * n_nodes)
-        wp.atomic_add(grid_node_m, batch * n_nodes + i % n_nodes, m)
+@wp.func
+def node_total(grid_m: wp.array(dtype=float), first: int, n_nodes: int, n_objects: int):
+    """Total mass of all object fields at one node; ``first`` is the node's index in field 0.
+
+    Its loop carries a value, which Warp's adjoint of a loop gets wrong (module docstring); it
+    is right here because the loop is a function's: the adjoint replays the call as the forward
+    ran it, and the sum is only a threshold, so no gradient flows back through the loop.
+    """
+    total = float(0.0)
+    for k in range(n_objects):
+        total = total + grid_m[first + k * n_nodes]
+    return total
+
+
+@wp.func
+def present_fields(grid_m: wp.array(dtype=float), first: int, n_nodes: int, n_objects: int,
+                   threshold: float, normal_rank: wp.array(dtype=int)):
+    """How many fields hold more than ``threshold`` at a node, and the highest normal_rank of them.
+
+    A function for the reason ``node_total`` is one; both results are integers.
+    """
+    count = int(0)
+    lead_rank = int(0)
+    for k in range(n_objects):
+        if grid_m[first + k * n_nodes] > threshold:
+            count = count + 1
+            lead_rank = wp.max(lead_rank, normal_rank[k])
+    return wp.vec2i(count, lead_rank)
 
 
 @wp.kernel
@@ -302,8 +323,6 @@ def contact_totals(
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
-    normal_rank: wp.array(dtype=int),
-    grid_node_m: wp.array(dtype=float),
     n_nodes: int,
     n_objects: int,
     dims: wp.vec3i,
@@ -313,15 +332,13 @@ def contact_totals(
     grid_present_m: wp.array(dtype=float),
     grid_present_p: wp.array(dtype=wp.vec3),
     grid_present_mu: wp.array(dtype=float),
-    grid_present_count: wp.array(dtype=int),
-    grid_lead_rank: wp.array(dtype=int),
 ):
-    """Sums over the fields present at each node (contact pass 2, one thread per field node).
+    """Sums over the fields present at each node (contact pass, one thread per field node).
 
     A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far
     fringe of an object's kernel support, and M-PhyGs boundary particles outside the surface
-    (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum after
-    the effects (m v), friction-weighted mass (mu m), count, and the highest normal_rank.
+    (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum
+    after the effects (m v) and friction-weighted mass (mu m).
     """
     i = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[i]
@@ -330,12 +347,10 @@ def contact_totals(
     batch = i // (n_objects * n_nodes)
     k = (i // n_nodes) % n_objects
     node = batch * n_nodes + i % n_nodes
-    if m > grid_node_m[node] * CONTACT_MASS_FRACTION:
+    if m > node_total(grid_m, batch * n_objects * n_nodes + i % n_nodes, n_nodes, n_objects) * CONTACT_MASS_FRACTION:
         wp.atomic_add(grid_present_m, node, m)
         wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
         wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
-        wp.atomic_add(grid_present_count, node, 1)
-        wp.atomic_max(grid_lead_rank, node, normal_rank[k])
 
 
 @wp.kernel
@@ -344,12 +359,10 @@ def grid_update(
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
     friction: wp.array(dtype=float),
-    grid_node_m: wp.array(dtype=float),
     grid_present_m: wp.array(dtype=float),
     grid_present_p: wp.array(dtype=wp.vec3),
     grid_present_mu: wp.array(dtype=float),
-    grid_present_count: wp.array(dtype=int),
-    grid_lead_rank: wp.array(dtype=int),
+    normal_rank: wp.array(dtype=int),
     ranked_object: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
     ground_normal: wp.array(dtype=float),
@@ -376,7 +389,8 @@ def grid_update(
 ):
     """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
 
-    The contact sums (``contact_totals``) are only read when there are several objects.
+    The contact sums (``contact_totals``) are only read when there are several objects; the
+    count of fields present and the largest of them are found here (``present_fields``).
     """
     index = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[index]
@@ -393,8 +407,11 @@ def grid_update(
 
     if n_objects > 1:
         at = batch * n_nodes + node
-        if grid_present_count[at] > 1 and m > grid_node_m[at] * CONTACT_MASS_FRACTION:
-            lead = ranked_object[grid_lead_rank[at]]
+        first = batch * n_objects * n_nodes + node
+        present = node_total(grid_m, first, n_nodes, n_objects) * CONTACT_MASS_FRACTION
+        fields = present_fields(grid_m, first, n_nodes, n_objects, present, normal_rank)
+        if fields[0] > 1 and m > present:
+            lead = ranked_object[fields[1]]
             g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
                                    1.0 / dx)
             g_len = wp.length(g_lead)

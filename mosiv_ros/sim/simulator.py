@@ -276,13 +276,11 @@ class _Grid:
         n_contact = n_batch * n_nodes if n_objects > 1 else 1
 
         # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
-        (self.m, self.p, self.a, self.v, self.tau, self.node_m, self.present_m, self.present_p,
+        (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
          self.present_mu), self._values, self._grads = _arrays(
             [(n_grid, float), (n_grid, wp.vec3), (n_grid, wp.vec3), (n_grid, wp.vec3),
-             (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, float),
-             (n_contact, wp.vec3), (n_contact, float)], device, requires_grad)
-        self._counts = _Arena([(n_contact, int), (n_contact, int)], device)
-        self.present_count, self.lead_rank = self._counts.arrays
+             (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
+             (n_contact, float)], device, requires_grad)
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
         # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
@@ -292,26 +290,23 @@ class _Grid:
     @property
     def arrays(self) -> tuple[wp.array, ...]:
         """The differentiable arrays (their gradients are zeroed between frames)."""
-        return (self.m, self.p, self.a, self.v, self.tau, self.node_m, self.present_m,
-                self.present_p, self.present_mu)
+        return (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
+                self.present_mu)
 
     def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
         """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
         if self._cpu:
             self._zero(self.tau, [self.m, self.p, self.a, self.v],
-                       [self.node_m, self.present_m, self.present_p, self.present_mu,
-                        self.present_count, self.lead_rank])
+                       [self.present_m, self.present_p, self.present_mu])
         else:
             self._values.zero()
-            self._counts.zero()
         self.box = box
 
     def zero_grad(self) -> None:
         """Zero the gradients of ``arrays`` (see the class docstring)."""
         if self._cpu:
             self._zero(self.tau.grad, [a.grad for a in (self.m, self.p, self.a, self.v)],
-                       [a.grad for a in (self.node_m, self.present_m, self.present_p,
-                                         self.present_mu)])
+                       [a.grad for a in (self.present_m, self.present_p, self.present_mu)])
         else:
             self._grads.zero()
 
@@ -776,7 +771,6 @@ class Simulator:
         n_box = view.n_box
         box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
         if K > 1:
-            self._run(kernels.node_mass, n_box, grid=grid, **box)
             self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
                   **box, dt=dt)
