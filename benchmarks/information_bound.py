@@ -77,7 +77,10 @@ def surface(rest: np.ndarray, spacing: float) -> np.ndarray:
 def bound(path: Path, sigma: float, frames: int | None, step_scale: float, device: str | None) -> dict:
     truth = read_ground_truth(path)
     recorded = read_ground_truth_particles(path).positions
-    spec = read_scene_file(truth["scene_file"])
+    scene_file = Path(truth["scene_file"])
+    if not scene_file.is_absolute() and not scene_file.exists():  # relative to the repository
+        scene_file = Path(__file__).resolve().parents[1] / scene_file
+    spec = read_scene_file(scene_file)
     if device is not None:
         spec.simulation.device = device
     n_frames = spec.n_frames if frames is None else min(frames, spec.n_frames)
