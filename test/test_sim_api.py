@@ -11,7 +11,9 @@ from mosiv_ros.identify.losses import chamfer
 from mosiv_ros.sim import (
     Collider,
     Effect,
+    Gravity,
     Ground,
+    LinearDrag,
     ObjectModel,
     ParameterError,
     ParamSpec,
@@ -209,7 +211,7 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
                                                                           sim.device, False)
         sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
         grid = _Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False)
-        sim.params.replicate()
+        sim._replicate()
         sim._collider_poses(0, n_sub, dt)
         sim._substep(src, dst, grid, 0, dt)
         box_lo, box_dims = sim._active_box(src)
@@ -324,26 +326,27 @@ def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named
               sim._scene)
 
 
-def _two_balls(n_batch=1):
+def _two_balls(n_batch=1, effects=None):
     dx = 0.02
     ball = sphere((0.12, 0.2, 0.2), 0.04, dx / 2)
     block = box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)
     return scene([ball, block], [ObjectModel("ball", "elastic", {"E": 3e4}),
                                  ObjectModel("block", "plastic", {"E": 5e4})],
                  dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=0.05),
-                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=n_batch)
+                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=n_batch, effects=effects)
 
 
 def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds():
     """Grids are cleared over the box the last substep wrote: nothing of it may remain."""
     from mosiv_ros.sim.simulator import SimState, _Grid, _State
 
-    sim = _two_balls(n_batch=2)
+    # the drag writes the effects' accelerations (gravity, being uniform, writes none)
+    sim = _two_balls(n_batch=2, effects=[Gravity(), LinearDrag(coefficient=2.0)])
     n_sub, dt = sim.time_step()
     x = np.repeat(sim.initial_positions()[None], 2, axis=0).astype(np.float64)
     elsewhere = x + np.array([0.15, 0.08, -0.1])  # another box of nodes
     grids = [_Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False) for _ in range(2)]
-    sim.params.replicate()
+    sim._replicate()
     sim._collider_poses(0, n_sub, dt)
     for grid, starts in zip(grids, ([x], [elsewhere, x]), strict=True):
         for positions in starts:

@@ -17,7 +17,7 @@ import pytest
 from sim_scenes import DEVICE, falling_ball, scene
 
 from mosiv_ros.identify.losses import chamfer
-from mosiv_ros.sim import Ground, KelvinVoigtDamping, LinearDrag, ObjectModel, QuadraticDrag
+from mosiv_ros.sim import BodyForce, Ground, KelvinVoigtDamping, LinearDrag, ObjectModel, QuadraticDrag
 from mosiv_ros.sim.effects import FIELD_FEATURES, ForceField
 from mosiv_ros.sim.sampling import cylinder, sphere
 
@@ -79,6 +79,15 @@ def test_elastic_and_ground_gradients_match_finite_differences(name, index, rel_
     sim = falling_ball("elastic", {"E": 3e4, "nu": 0.3})
     step = rel_step * abs(sim.params.get(name)[index])
     check(sim, target, name, index, step)
+
+
+def test_a_second_uniform_acceleration_gradient_matches_finite_differences():
+    # gravity and a wind are both uniform: the grid passes read their sum (Simulator._replicate)
+    target = target_of("elastic", {"E": 3e4}, (BodyForce(a=(1.0, 0.0, -0.5)),))
+    sim = falling_ball("elastic", {"E": 3e4}, (BodyForce(a=(0.3, 0.0, 0.0)),))
+    grads = check(sim, target, "wind.a", (0, 0), 0.01)
+    # the same sum's gradient (equal on the CPU; the GPU folds the replicas in no fixed order)
+    assert np.allclose(grads.params["wind.a"], grads.params["gravity.g"], rtol=1e-5, atol=1e-12)
 
 
 @pytest.mark.parametrize(("family", "fit", "true", "name"), [

@@ -2,7 +2,12 @@
 
 The extension point. An ``Effect`` subclass declares its parameters (``ParamSpec``; stored in the
 simulator's ``Parameters`` as ``<effect name>.<param>`` and fitted with the same gradients as
-the material parameters) and implements one or both hooks:
+the material parameters) and either names a uniform acceleration or implements one or both hooks:
+
+- ``uniform``: the name of the effect's vector parameter (3 components per batch) when the effect
+  is an acceleration the same everywhere (gravity, a steady wind). The grid passes add the sum
+  of these to every node's velocity (``v = p / m + dt (a + g)``), so such an effect launches no
+  kernel of its own.
 
 - ``accelerate(grid, values)``: runs after particle-to-grid, before the grid update. It adds
   accelerations (m/s^2) to ``grid.a``, one vec3 per (batch, object, node), from the grid mass and
@@ -102,6 +107,8 @@ class Effect:
     name: ClassVar[str] = ""
     params: ClassVar[tuple[ParamSpec, ...]] = ()
     doc: ClassVar[str] = ""
+    uniform: ClassVar[str] = ""
+    """The parameter that is the effect's uniform acceleration, if it is one (module docstring)."""
 
     def __init__(self, **initial: object) -> None:
         known = {spec.name for spec in self.params}
@@ -144,19 +151,6 @@ class Effect:
 
 
 # --- kernels ------------------------------------------------------------------------------------
-
-
-@wp.kernel
-def uniform_acceleration_kernel(
-    m: wp.array(dtype=float), values: wp.array(dtype=float), per_batch: int, box_lo: wp.vec3i,
-    box_dims: wp.vec3i, dims: wp.vec3i, a: wp.array(dtype=wp.vec3)
-):
-    """Add g(b) at every node with mass; ``per_batch`` = K * G nodes share one batch's vector."""
-    i = field_node(wp.tid(), box_lo, box_dims, dims)
-    if m[i] > 0.0:
-        b = i // per_batch
-        g = wp.vec3(param(values, 3 * b, i), param(values, 3 * b + 1, i), param(values, 3 * b + 2, i))
-        wp.atomic_add(a, i, g)
 
 
 @wp.kernel
@@ -304,9 +298,7 @@ class Gravity(Effect):
 
     name = "gravity"
     params = (ParamSpec("g", (0.0, 0.0, -9.81), -100.0, 100.0, "m/s^2", "gravity vector", size=3),)
-
-    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
-        _uniform(grid, values["g"])
+    uniform = "g"
 
 
 class BodyForce(Effect):
@@ -315,9 +307,7 @@ class BodyForce(Effect):
     name = "wind"
     params = (ParamSpec("a", (0.0, 0.0, 0.0), -100.0, 100.0, "m/s^2",
                         "body acceleration vector", size=3),)
-
-    def accelerate(self, grid: GridView, values: dict[str, wp.array]) -> None:
-        _uniform(grid, values["a"])
+    uniform = "a"
 
 
 class LinearDrag(Effect):
@@ -426,16 +416,6 @@ def field_features(r: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z,
                      v[..., 0], v[..., 1], v[..., 2], speed, speed * v[..., 0], speed * v[..., 1],
                      speed * v[..., 2]], axis=-1)
-
-
-def _uniform(grid: GridView, vector: wp.array) -> None:
-    wp.launch(
-        uniform_acceleration_kernel,
-        dim=grid.n_box,
-        inputs=[grid.m, vector, grid.n_objects * grid.n_nodes, *grid.box],
-        outputs=[grid.a],
-        device=grid.device,
-    )
 
 
 def _drag(grid: GridView, coefficient: wp.array, quadratic: bool) -> None:

@@ -204,14 +204,21 @@ def field_velocity(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
+    uniform: wp.array(dtype=float),
+    batch: int,
     index: int,
     dt: float,
 ):
-    """Grid velocity of one field at one node after the effects' accelerations: p/m + dt a."""
+    """Grid velocity of one field at one node after the effects' accelerations: p/m + dt (a + g).
+
+    ``uniform``: the replicas of the batches' summed uniform accelerations g (``Simulator``).
+    """
     m = grid_m[index]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        vel = divide(grid_p[index], m) + grid_a[index] * dt
+        g = wp.vec3(param(uniform, 3 * batch, index), param(uniform, 3 * batch + 1, index),
+                    param(uniform, 3 * batch + 2, index))
+        vel = divide(grid_p[index], m) + (grid_a[index] + g) * dt
     return vel
 
 
@@ -322,6 +329,7 @@ def contact_totals(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
+    uniform: wp.array(dtype=float),
     friction: wp.array(dtype=float),
     n_nodes: int,
     n_objects: int,
@@ -349,7 +357,7 @@ def contact_totals(
     node = batch * n_nodes + i % n_nodes
     if m > node_total(grid_m, batch * n_objects * n_nodes + i % n_nodes, n_nodes, n_objects) * CONTACT_MASS_FRACTION:
         wp.atomic_add(grid_present_m, node, m)
-        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, i, dt) * m)
+        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, uniform, batch, i, dt) * m)
         wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
 
 
@@ -358,6 +366,7 @@ def grid_update(
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
     grid_a: wp.array(dtype=wp.vec3),
+    uniform: wp.array(dtype=float),
     friction: wp.array(dtype=float),
     grid_present_m: wp.array(dtype=float),
     grid_present_p: wp.array(dtype=wp.vec3),
@@ -403,7 +412,7 @@ def grid_update(
     j = (node // dims[2]) % dims[1]
     l = node % dims[2]
     x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
-    vel = field_velocity(grid_m, grid_p, grid_a, index, dt)
+    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, dt)
 
     if n_objects > 1:
         at = batch * n_nodes + node

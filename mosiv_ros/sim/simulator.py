@@ -41,7 +41,7 @@ from mosiv_ros.sim.boundaries import COLLIDER_SHAPES, GROUND_PARAMS, WALL_CELLS,
 from mosiv_ros.sim.effects import Effect, Gravity, GridView, ParticleView
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import FAMILY_CODES, MATERIAL_PARAMS, wave_speed
-from mosiv_ros.sim.params import Parameters, lane_count
+from mosiv_ros.sim.params import REPLICAS, Parameters, lane_count
 from mosiv_ros.sim.runtime import load_modules, resolve_device
 
 _LOG = logging.getLogger(__name__)
@@ -421,6 +421,12 @@ def _add_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.ar
     out[i] = a[i] + b[i]
 
 
+@wp.kernel
+def _add_floats(a: wp.array(dtype=float), b: wp.array(dtype=float), out: wp.array(dtype=float)):
+    i = wp.tid()
+    out[i] = a[i] + b[i]
+
+
 def load_kernels(device: str, effects: Sequence[Effect] = ()) -> None:
     """Build and load every kernel a simulation on ``device`` with ``effects`` may launch.
 
@@ -477,6 +483,7 @@ class Simulator:
         for effect in self.effects:
             self.params.update({f"{effect.name}.{k}": v for k, v in effect.initial.items()})
         self.params.validate()
+        self._uniform_parts, self._uniform_sums = self._uniform_arrays()
 
         d = self.device
         self.obj = wp.array(particles.object_index, dtype=int, device=d)
@@ -504,6 +511,7 @@ class Simulator:
             "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
             "family": self.family, "normal_rank": self.normal_rank,
             "ranked_object": self.ranked_object, "has_ground": int(config.ground is not None),
+            "uniform": self._uniform_sums[-1] if self._uniform_sums else self._uniform_parts[0],
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
         self._stress = any(e.has_stress for e in self.effects)
@@ -519,6 +527,32 @@ class Simulator:
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
 
     # --- set-up and checks ----------------------------------------------------------------
+
+    def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
+        """The replicas of the uniform accelerations (``Effect.uniform``) and their running sums.
+
+        The grid passes read the last sum (``kernels.field_velocity``), refreshed every frame by
+        ``_replicate``; with one uniform effect, its own replicas; with none, zeros.
+        """
+        parts = []
+        for effect in self.effects:
+            if effect.uniform:
+                spec = self.params.spec(f"{effect.name}.{effect.uniform}")
+                if spec.size != 3 or spec.per_object:
+                    raise ParameterError(f"effect {effect.name!r}: its uniform acceleration "
+                                         f"{spec.name!r} must be one 3-vector per batch")
+                parts.append(self.params[spec.name])
+        if not parts:
+            return [wp.zeros(self.n_batch * 3 * REPLICAS, dtype=float, device=self.device)], []
+        return parts, [wp.zeros_like(parts[0], requires_grad=True) for _ in parts[1:]]
+
+    def _replicate(self) -> None:
+        """A frame's parameter replicas (``Parameters.replicate``) and uniform acceleration sums."""
+        self.params.replicate()
+        total = self._uniform_parts[0]
+        for part, out in zip(self._uniform_parts[1:], self._uniform_sums, strict=True):
+            wp.launch(_add_floats, dim=out.shape[0], inputs=[total, part], outputs=[out], device=self.device)
+            total = out
 
     def _check_scene(self, particles: Particles) -> None:
         if not self.objects:
@@ -802,7 +836,7 @@ class Simulator:
     def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
                dt: float) -> None:
         """One frame's substeps from ``states[current]``, ping-ponging between the two states."""
-        self.params.replicate()
+        self._replicate()
         for s in range(n_sub):
             self._substep(states[current], states[1 - current], grid, s, dt)
             current = 1 - current
@@ -820,7 +854,7 @@ class Simulator:
             grid.zero_grad()
         tape = wp.Tape()
         with tape:
-            self.params.replicate()
+            self._replicate()
             for s in range(n_sub):
                 self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders)
         return tape
@@ -836,6 +870,8 @@ class Simulator:
         (``kernels.p2g`` says why it may).
         """
         self.params.zero_replica_grad()
+        for total in self._uniform_sums:
+            total.grad.zero_()
         last = frame.states[-1]
         wp.launch(_add_vec3, dim=self.n_batch * self.n_particles, inputs=[adjoint.x, seed],
                   outputs=[last.x.grad], device=self.device, record_tape=False)
