@@ -107,6 +107,19 @@ def test_extension_point_effect_parameters_live_in_the_parameter_table():
         AntiDrag(speed=1.0)
 
 
+class UniformPerObject(Effect):
+    """Claims a per-object parameter as its uniform acceleration: not one vector per batch."""
+
+    name = "uneven_wind"
+    params = (ParamSpec("a", 0.0, -10.0, 10.0, "m/s^2", "acceleration", per_object=True),)
+    uniform = "a"
+
+
+def test_a_uniform_acceleration_must_be_one_vector_per_batch():
+    with pytest.raises(ParameterError, match="'uneven_wind'.*one 3-vector per batch"):
+        falling_ball("elastic", {}, effects=(UniformPerObject(),))
+
+
 def test_batched_rollout_equals_one_rollout_per_parameter_set():
     sims = [falling_ball("elastic", {"E": e}) for e in (3e4, 9e4)]
     batched = falling_ball("elastic", {"E": 3e4})
