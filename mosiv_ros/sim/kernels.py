@@ -209,16 +209,19 @@ def field_velocity(
     index: int,
     dt: float,
 ):
-    """Grid velocity of one field at one node after the effects' accelerations: p/m + dt (a + g).
+    """Grid velocity of one field at one node after the effects' accelerations: p/m + dt (g + a).
 
-    ``uniform``: the replicas of the batches' summed uniform accelerations g (``Simulator``).
+    ``uniform``: the replicas of the batches' summed uniform accelerations g (``Simulator``);
+    ``grid_a`` is empty when no effect adds accelerations at nodes.
     """
     m = grid_m[index]
     vel = wp.vec3(0.0)
     if m > 0.0:
-        g = wp.vec3(param(uniform, 3 * batch, index), param(uniform, 3 * batch + 1, index),
-                    param(uniform, 3 * batch + 2, index))
-        vel = divide(grid_p[index], m) + (grid_a[index] + g) * dt
+        acceleration = wp.vec3(param(uniform, 3 * batch, index), param(uniform, 3 * batch + 1, index),
+                               param(uniform, 3 * batch + 2, index))
+        if grid_a.shape[0] > 0:
+            acceleration = acceleration + grid_a[index]
+        vel = divide(grid_p[index], m) + acceleration * dt
     return vel
 
 

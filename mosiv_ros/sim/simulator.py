@@ -270,15 +270,16 @@ class _Grid:
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-                 stress: bool, device: str, requires_grad: bool) -> None:
+                 stress: bool, device: str, requires_grad: bool, accelerated: bool = True) -> None:
         n_nodes = int(np.prod(dims))
         n_grid = n_batch * n_objects * n_nodes
         n_contact = n_batch * n_nodes if n_objects > 1 else 1
 
-        # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
+        # the differentiable arrays (``arrays``) first, their gradients in an arena of their own;
+        # the effects' accelerations and stresses only where an effect adds them (else empty)
         (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
          self.present_mu), self._values, self._grads = _arrays(
-            [(n_grid, float), (n_grid, wp.vec3), (n_grid, wp.vec3), (n_grid, wp.vec3),
+            [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3), (n_grid, wp.vec3),
              (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
              (n_contact, float)], device, requires_grad)
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
@@ -315,6 +316,8 @@ class _Grid:
         per_particle.zero_()
         for arrays, shape in ((per_field_node, self._field_grid), (per_batch_node, self._batch_grid)):
             for array in arrays:
+                if array.shape[0] == 0:  # an array no effect uses
+                    continue
                 if shape is None:  # the single contact entry of one object
                     array.zero_()
                 elif self.box is not None:  # else as allocated
@@ -515,6 +518,7 @@ class Simulator:
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
         self._stress = any(e.has_stress for e in self.effects)
+        self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
         self._final: _State | None = None
         self._buffers: tuple[list[_State], _Grid] | None = None
@@ -1053,7 +1057,7 @@ class Simulator:
         if self._buffers is None:
             self._buffers = ([_State(B * N, self.device, False) for _ in range(2)],
                              _Grid(B, self.n_objects, self.dims, B * N, self._stress,
-                                   self.device, False))
+                                   self.device, False, self._accelerated))
         states, grid = self._buffers
         if initial is None:
             self._initial_state(states[0])
@@ -1161,7 +1165,7 @@ class Simulator:
             total = self.n_batch * self.n_particles
             frames = [_FrameTape([_State(total, self.device, True) for _ in range(n_sub + 1)],
                                  [_Grid(self.n_batch, self.n_objects, self.dims, total, self._stress,
-                                        self.device, True) for _ in range(n_sub)],
+                                        self.device, True, self._accelerated) for _ in range(n_sub)],
                                  self._collider_arrays(n_sub))
                       for _ in range(2 if self.device == "cpu" else 1)]
             self._tape_buffers = (frames, _State(total, self.device, False),
