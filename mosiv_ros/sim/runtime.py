@@ -138,26 +138,17 @@ def _cache_lock() -> Iterator[None]:
     Where there is none to hold (not POSIX, a read-only cache, a file system without locks) only
     the process-wide lock holds, as Warp's per-process build directories keep a build safe.
     """
-    try:
-        import fcntl
+    with contextlib.ExitStack() as held:
+        try:
+            import fcntl
 
-        os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
-        handle = open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a")  # noqa: SIM115
-    except (ImportError, OSError) as error:
-        _LOG.debug("kernel cache not locked between processes: %s", error)
-        yield
-        return
-    with handle:
-        try:
+            os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
+            handle = held.enter_context(open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a"))
             fcntl.flock(handle, fcntl.LOCK_EX)
-        except OSError as error:
+            held.callback(fcntl.flock, handle, fcntl.LOCK_UN)
+        except (ImportError, OSError) as error:
             _LOG.debug("kernel cache not locked between processes: %s", error)
-            yield
-            return
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+        yield
 
 
 def load_modules(device: str, modules: Iterable[types.ModuleType | str]) -> None:
