@@ -20,7 +20,9 @@ velocities) and times:
 
 The losses are computed as the identifier chooses (``Identifier.tensor_device``: as tensors on
 a GPU, by KD-trees on the CPU); ``--compare`` times both paths on the same device, interleaved
-(tensors, KD-trees, tensors, ...). Each figure is the mean of ``--repeats`` timed calls (their
+(tensors, KD-trees, tensors, ...); ``--tapes`` times the window again with every frame's tape
+kept by the rollout and with each frame recomputed by the backward (``SimConfig.tape_memory``),
+alternating, each round after two untimed calls. Each figure is the mean of ``--repeats`` timed calls (their
 minimum too). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
 """
 
@@ -78,7 +80,7 @@ def timed(identifier: Identifier, paths: dict[str, str | None], call, timing, re
             for name, r in runs.items()}
 
 
-def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool) -> dict:
+def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, tapes: bool) -> dict:
     identifier, velocity = identifier_of(bag, config)
     obs = identifier.problem.observations
     n = obs.n_frames - 1
@@ -103,14 +105,29 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool) ->
     # simulator's buffers, the observations' tensors
     timed(identifier, paths, window, lambda: {}, 2)
     timed(identifier, paths, search, lambda: {}, 1)
+    kept = bool(identifier.sim._kept)
     result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
               "frames": n, "free": [e.label for e in identifier.entries], "rows": rows,
               "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
               "window": timed(identifier, paths, window, lambda: identifier.timing, repeats),
-              "search": timed(identifier, paths, search, lambda: identifier.search.timing, repeats)}
-    for part in ("window", "search"):
-        print(part, json.dumps({name: {k: v for k, v in r.items() if k != "result"}
-                                for name, r in result[part].items()}), flush=True)
+              "search": timed(identifier, paths, search, lambda: identifier.search.timing, repeats),
+              "tapes_kept": kept}
+    if tapes:  # switching drops the captured graphs: each round captures them again first
+        result["tapes"] = []
+        for _ in range(2):
+            for memory in (None, 0.0):
+                identifier.sim.config.tape_memory = memory
+                timed(identifier, paths, window, lambda: {}, 2)
+                result["tapes"].append({"tape_memory": memory, "kept": bool(identifier.sim._kept),
+                                        **timed(identifier, paths, window, lambda: identifier.timing, repeats)})
+        identifier.sim.config.tape_memory = None
+    parts = ("window", "search") + (("tapes",) if tapes else ())
+    for part in parts:
+        rounds = result[part] if part == "tapes" else [result[part]]
+        for r in rounds:
+            print(part, json.dumps({name: ({k: v for k, v in value.items() if k != "result"}
+                                           if isinstance(value, dict) else value)
+                                    for name, value in r.items()}), flush=True)
     return result
 
 
@@ -123,10 +140,14 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--compare", action="store_true",
                         help="time both loss paths, the tensors' and the KD-trees', interleaved")
+    parser.add_argument("--tapes", action="store_true",
+                        help="time the window again with its frames' tapes kept by the rollout "
+                             "(SimConfig.tape_memory's default) and recomputed by the backward (0), "
+                             "two rounds each")
     parser.add_argument("--out", type=Path, default=Path("out/loss_throughput.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
-    results = [one(bag, config, args.rows, args.repeats, args.compare) for bag in args.bags]
+    results = [one(bag, config, args.rows, args.repeats, args.compare, args.tapes) for bag in args.bags]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(plain({
         "benchmark": "loss_throughput", "device": args.device, "host": platform.node(),

@@ -5,14 +5,15 @@
 
 Scenes: one or two elastic blocks (8 particles per cell) dropped onto the ground. Each
 configuration runs in its own subprocess (so that its peak memory is its own): a warm-up of two
-frames forward and two with their backward pass (kernel compilation; on a GPU the capture of the
-frame's and the backward's CUDA graphs, which an identification replays hundreds of times), then
-``--frames`` timed frames forward only, then the same frames with checkpoints plus the backward
-pass of a random dL/dx. Throughput is particle-substeps per second
-(particles x substeps / wall time). Peak memory: GPU, the largest drop of the device's free
-memory while the configuration ran; CPU, the subprocess's peak resident set size. A
-``frames_scaling`` entry repeats forward+backward of the middle configuration with twice the
-frames, to show memory grows with frames (checkpoints), not substeps.
+rollouts of ``--frames`` frames with their backward passes and two frames forward (kernel
+compilation; on a GPU the capture of the frame's and the backward's CUDA graphs, which an
+identification replays hundreds of times), then ``--frames`` timed frames forward only, then the
+same frames with checkpoints (or with every frame's tape kept, where ``--tape-memory`` GB hold
+them: ``SimConfig.tape_memory``) plus the backward pass of a random dL/dx. Throughput is
+particle-substeps per second (particles x substeps / wall time). Peak memory: GPU, the largest
+drop of the device's free memory while the configuration ran; CPU, the subprocess's peak resident
+set size. A ``frames_scaling`` entry repeats forward+backward of the middle configuration with
+twice the frames, to show memory grows with frames (checkpoints), not substeps.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import time
 from pathlib import Path
 
 
-def build(n_particles: int, n_objects: int, device: str):
+def build(n_particles: int, n_objects: int, device: str, tape_memory: float):
     import numpy as np
 
     from mosiv_ros.sim import Ground, ObjectModel, Particles, SimConfig, Simulator, domain_around
@@ -43,16 +44,16 @@ def build(n_particles: int, n_objects: int, device: str):
     index = np.concatenate([np.full(len(s), k) for k, s in enumerate(solids)])
     lo, hi = domain_around(x, dx, margin=0.05, floor=0.1)
     config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=1 / 30, ground=Ground(height=0.1),
-                       device=device, max_speed=2.0)
+                       device=device, max_speed=2.0, tape_memory=tape_memory)
     objects = [ObjectModel(f"block{k}", "elastic", {"E": 5e4}) for k in range(n_objects)]
     return Simulator(objects, Particles(x=x, volume=spacing**3, object_index=index), config)
 
 
-def run_one(n_particles: int, n_objects: int, frames: int, device: str) -> dict:
+def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_memory: float) -> dict:
     import numpy as np
     import warp as wp
 
-    sim = build(n_particles, n_objects, device)
+    sim = build(n_particles, n_objects, device, tape_memory)
     cuda = sim.device.startswith("cuda")
     free0 = wp.get_device(sim.device).free_memory if cuda else 0
     lowest = [free0]
@@ -63,10 +64,12 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str) -> dict:
 
     n_sub, _ = sim.time_step()
     rng = np.random.default_rng(0)
-    # warm-up: compilation and the CUDA graphs' captures (the backward's first run allocates
-    # its buffers and drops the graphs captured before, so the forward comes after it)
-    traj = sim.rollout(2, grad=True)
-    sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
+    # warm-up: compilation and the CUDA graphs' captures, on each graph's second run (the
+    # backward's first run allocates its buffers and drops the graphs captured before, so the
+    # forward comes after it; kept tapes have graphs of their own for every frame)
+    for _ in range(2):
+        traj = sim.rollout(frames, grad=True)
+        sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
     sim.rollout(2)
     sample()
     start = time.perf_counter()
@@ -84,6 +87,7 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str) -> dict:
     return {
         "particles": sim.n_particles, "objects": n_objects, "grid_nodes": sim.n_nodes * n_objects,
         "frames": frames, "substeps_per_frame": n_sub, "device": sim.device,
+        "tapes_kept": bool(sim._kept),
         "forward_s": forward, "forward_backward_s": both,
         "forward_particle_substeps_per_s": work / forward,
         "forward_backward_particle_substeps_per_s": work / both,
@@ -98,20 +102,23 @@ def main() -> int:
     parser.add_argument("--particles", type=int, nargs="+", default=[10_000, 100_000, 1_000_000])
     parser.add_argument("--objects", type=int, nargs="+", default=[1, 2])
     parser.add_argument("--frames", type=int, default=2)
+    parser.add_argument("--tape-memory", type=float, default=0.0,
+                        help="SimConfig.tape_memory, GB (default 0: every frame recomputed by the "
+                             "backward, memory growing with frames, not substeps)")
     parser.add_argument("--out", type=Path, default=None, help="write the JSON here too")
     parser.add_argument("--one", nargs=3, type=int, metavar=("N", "K", "FRAMES"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(*args.one, args.device)))
+        print(json.dumps(run_one(*args.one, args.device, args.tape_memory)))
         return 0
     results = []
     for n in args.particles:
         for k in args.objects:
-            results.append(_child(n, k, args.frames, args.device))
+            results.append(_child(n, k, args.frames, args.device, args.tape_memory))
             print(json.dumps(results[-1]), flush=True)
     middle = args.particles[len(args.particles) // 2]
-    scaling = [_child(middle, 1, f, args.device) for f in (args.frames, 2 * args.frames)]
+    scaling = [_child(middle, 1, f, args.device, args.tape_memory) for f in (args.frames, 2 * args.frames)]
     report = {"benchmark": "sim_throughput", "host": platform.node(), "python": sys.version.split()[0],
               "results": results,
               "frames_scaling": [{"frames": r["frames"], "peak_memory_bytes": r["peak_memory_bytes"],
@@ -124,9 +131,9 @@ def main() -> int:
     return 0
 
 
-def _child(n: int, k: int, frames: int, device: str) -> dict:
-    out = subprocess.run([sys.executable, __file__, "--device", device, "--one", str(n), str(k),
-                          str(frames)], capture_output=True, text=True, check=False)
+def _child(n: int, k: int, frames: int, device: str, tape_memory: float) -> dict:
+    out = subprocess.run([sys.executable, __file__, "--device", device, "--tape-memory", str(tape_memory),
+                          "--one", str(n), str(k), str(frames)], capture_output=True, text=True, check=False)
     if out.returncode != 0:
         # a negative code is the signal that ended it (-9: killed, typically out of memory)
         return {"particles": n, "objects": k, "frames": frames, "exit_code": out.returncode,

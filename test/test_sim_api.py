@@ -387,6 +387,56 @@ def test_gradients_after_an_earlier_backward_elsewhere_equal_a_fresh_simulators(
     assert np.abs(results[0].params["E"]).max() > 0
 
 
+@pytest.mark.skipif(DEVICE == "cpu", reason="tapes are kept on a CUDA device: run with MOSIV_TEST_DEVICE=cuda:0")
+def test_tapes_kept_from_the_rollout_give_the_gradients_of_recomputed_frames():
+    """``SimConfig.tape_memory``: frames kept by the rollout, or recomputed by the backward."""
+    dx, floor = 0.02, 0.05
+    finger = Collider("sphere", (0.03,), np.array([0.0, 0.2]),
+                      np.array([[0.05, 0.2, 0.2], [0.35, 0.2, 0.2]]), friction=0.5)
+    sims = {memory: scene([sphere((0.12, 0.2, 0.2), 0.04, dx / 2), box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)],
+                          [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {"E": 5e4})],
+                          dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=floor),
+                          colliders=[finger], velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)],
+                          n_batch=2, tape_memory=memory)
+            for memory in (0.0, 1.0)}
+    rng = np.random.default_rng(1)
+    results = {memory: [] for memory in sims}
+    substeps = []
+    # windows as a fit runs them: from the start, from a later state (another clock), longer,
+    # stiffer (more substeps), and back (the substeps of before): each window's backward, the
+    # last one's twice
+    for frames, start, stiffness in ((4, 0, 3e4), (3, 2, 3e4), (6, 0, 3e4), (4, 0, 1e5), (4, 0, 3e4)):
+        seed = None
+        for memory, sim in sims.items():
+            sim.params.set("E", {"ball": stiffness})
+            initial = sim.frame_state(start) if start else None
+            traj = sim.rollout(frames, grad=True, initial=initial, start_frame=start)
+            assert (len(sim._kept) >= frames) == (memory > 0)
+            seed = rng.normal(size=traj.shape).astype(np.float32) if seed is None else seed
+            results[memory].append((traj, sim.backward(seed), sim.frame_state(frames).x))
+        substeps.append(sims[0.0].time_step()[0])
+    for memory, sim in sims.items():  # a second backward of one rollout recomputes its frames
+        results[memory].append((None, sim.backward(seed), None))
+    assert substeps[3] > substeps[2] == substeps[4]
+    for recomputed, kept in zip(results[0.0], results[1.0], strict=True):
+        if recomputed[0] is not None:
+            assert np.abs(recomputed[0] - kept[0]).max() < 1e-5
+            assert np.abs(recomputed[2] - kept[2]).max() < 1e-5
+        # float atomics add in no fixed order on a GPU: equal to rounding, amplified by contact
+        for name in ("E", "nu", "yield_stress", "friction", "ground.friction", "gravity.g"):
+            assert np.allclose(recomputed[1].params[name], kept[1].params[name], rtol=1e-3,
+                               atol=1e-4 * np.abs(recomputed[1].params[name]).max()), name
+        for field in ("v0", "volume"):
+            a, b = getattr(recomputed[1], field), getattr(kept[1], field)
+            assert np.abs(a - b).max() < 1e-3 * np.abs(a).max(), field
+    assert np.allclose(results[1.0][-1][1].params["E"], results[1.0][-2][1].params["E"], rtol=1e-3)
+    assert np.abs(results[1.0][-1][1].params["E"]).min() > 0
+    # a rollout that does not fit frees the kept frames and recomputes
+    sims[1.0].config.tape_memory = 1e-6
+    sims[1.0].rollout(2, grad=True)
+    assert not sims[1.0]._kept
+
+
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding."""
     if DEVICE == "cpu":

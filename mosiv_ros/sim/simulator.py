@@ -6,7 +6,9 @@ frames and returns particle positions per frame; with ``grad=True`` it keeps one
 particle state per frame, and ``backward`` then takes dL/dx at every frame and returns dL/d(every
 parameter), dL/d(initial velocities) and dL/d(particle volumes). The backward pass recomputes
 one frame's substeps at a time on a ``wp.Tape`` from that frame's checkpoint, so memory grows
-with the number of frames, not substeps.
+with the number of frames, not substeps. On a CUDA device, where the frames' substep states and
+grids fit in ``SimConfig.tape_memory``, the rollout records each frame on the tape's buffers and
+keeps a copy of them, and the backward puts each back (one copy) instead of recomputing it.
 
 On a CUDA device a frame's substeps are hundreds of small kernel launches, and at the particle
 counts of an identification (thousands) launching them from Python costs more than running
@@ -97,7 +99,12 @@ class SimConfig:
     ``cell_order``: keep the particles sorted by grid cell inside the simulator (callers see
     their own order). None (default): on a CUDA device, sort when the given order scatters
     neighbours (fewer than ``SORT_BELOW`` of consecutive particles share their stencil's cell);
-    on the CPU, never (``Simulator._stencil_cells`` says why).
+    on the CPU, never (``Simulator._stencil_cells`` says why). ``tape_memory``: GB that a
+    ``grad=True`` rollout on a CUDA device may keep every frame's substep states and grids in,
+    so that ``backward`` copies each frame's back and runs its adjoint instead of first
+    recomputing it; a rollout that needs more, every rollout at 0, and every rollout on the CPU
+    (where a second thread recomputes a frame while the adjoint of the next one runs) keep one
+    checkpoint a frame and recompute. None (default): a third of the device's memory.
     """
 
     dx: float
@@ -113,6 +120,7 @@ class SimConfig:
     device: str = "auto"
     cuda_graphs: bool = True
     cell_order: bool | None = None
+    tape_memory: float | None = None
 
 
 def domain_around(points: np.ndarray, dx: float, margin: float = 0.1,
@@ -201,29 +209,51 @@ class _Arena:
     memset node of about a microsecond whatever its size, which at the few thousand particles
     of an identification was a fifth of a frame's backward (benchmarks/RESULTS.md). The arrays
     are views of ``memory``, which only the arena holds: whoever keeps the arrays keeps it.
+    ``memory`` may be given: a view of a larger allocation (``_blocks``) that holds several arenas.
     """
 
     ALIGN = 16
 
-    def __init__(self, specs: list[tuple[int, type]], device: str) -> None:
-        offsets, total = [], 0
-        for n, dtype in specs:
-            offsets.append(total)
-            total += -(-n * wp.types.type_size_in_bytes(dtype) // self.ALIGN) * self.ALIGN
-        self.memory = wp.zeros(max(total, self.ALIGN) // 4, dtype=wp.float32, device=device)
+    def __init__(self, specs: list[tuple[int, type]], device: str, memory: wp.array | None = None) -> None:
+        offsets = self.offsets(specs)
+        total = offsets.pop()
+        self.memory = memory if memory is not None else wp.zeros(max(total, self.ALIGN) // 4,
+                                                                 dtype=wp.float32, device=device)
         self.arrays = [wp.array(ptr=self.memory.ptr + offset, dtype=dtype, shape=(n,),
                                 device=device, owner=False)
                        for offset, (n, dtype) in zip(offsets, specs, strict=True)]
+
+    @classmethod
+    def offsets(cls, specs: list[tuple[int, type]]) -> list[int]:
+        """Where each array of ``specs`` starts in the arena, and (last) the arena's bytes."""
+        offsets = [0]
+        for n, dtype in specs:
+            offsets.append(offsets[-1] + -(-n * wp.types.type_size_in_bytes(dtype) // cls.ALIGN) * cls.ALIGN)
+        return offsets
 
     def zero(self) -> None:
         self.memory.zero_()
 
 
-def _arrays(specs: list[tuple[int, type]], device: str,
-            requires_grad: bool) -> tuple[list[wp.array], _Arena, _Arena | None]:
+def _blocks(block: wp.array, sizes: list[int]) -> list[wp.array]:
+    """Consecutive views of ``block`` (float32) of ``sizes`` bytes each (multiples of 16)."""
+    views, offset = [], 0
+    for size in sizes:
+        views.append(wp.array(ptr=block.ptr + offset, dtype=wp.float32, shape=(max(size, _Arena.ALIGN) // 4,),
+                              device=block.device, owner=False))
+        offset += max(size, _Arena.ALIGN)
+    return views
+
+
+Memory = tuple[wp.array, wp.array | None]
+"""Where an arena's values and gradients go (``_blocks`` views), or None for allocations of their own."""
+
+
+def _arrays(specs: list[tuple[int, type]], device: str, requires_grad: bool,
+            memory: Memory | None = None) -> tuple[list[wp.array], _Arena, _Arena | None]:
     """Arrays of ``specs`` in one arena, their gradients (if asked) in another."""
-    values = _Arena(specs, device)
-    grads = _Arena(specs, device) if requires_grad else None
+    values = _Arena(specs, device, memory[0] if memory else None)
+    grads = _Arena(specs, device, memory[1] if memory else None) if requires_grad else None
     if grads is not None:
         for array, grad in zip(values.arrays, grads.arrays, strict=True):
             array.grad = grad
@@ -238,9 +268,13 @@ class _State:
     (``_Arena``): ``zero_grad`` clears them at once.
     """
 
-    def __init__(self, n: int, device: str, requires_grad: bool) -> None:
+    def __init__(self, n: int, device: str, requires_grad: bool, memory: Memory | None = None) -> None:
         (self.x, self.v, self.C, self.b), self._values, self._grads = _arrays(
-            [(n, wp.vec3), (n, wp.vec3), (n, wp.mat33), (n, wp.mat33)], device, requires_grad)
+            self.specs(n), device, requires_grad, memory)
+
+    @staticmethod
+    def specs(n: int) -> list[tuple[int, type]]:
+        return [(n, wp.vec3), (n, wp.vec3), (n, wp.mat33), (n, wp.mat33)]
 
     def zero_grad(self) -> None:
         self._grads.zero()
@@ -270,23 +304,29 @@ class _Grid:
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-                 stress: bool, device: str, requires_grad: bool, accelerated: bool = True) -> None:
-        n_nodes = int(np.prod(dims))
-        n_grid = n_batch * n_objects * n_nodes
-        n_contact = n_batch * n_nodes if n_objects > 1 else 1
-
-        # the differentiable arrays (``arrays``) first, their gradients in an arena of their own;
-        # the effects' accelerations and stresses only where an effect adds them (else empty)
+                 stress: bool, device: str, requires_grad: bool, accelerated: bool = True,
+                 memory: Memory | None = None) -> None:
+        # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
         (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
          self.present_mu), self._values, self._grads = _arrays(
-            [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3), (n_grid, wp.vec3),
-             (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
-             (n_contact, float)], device, requires_grad)
+            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated), device, requires_grad,
+            memory)
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
         # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
         self._field_grid = (n_batch * n_objects, *dims)
         self._batch_grid = (n_batch, *dims) if n_objects > 1 else None
+
+    @staticmethod
+    def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
+              stress: bool, accelerated: bool) -> list[tuple[int, type]]:
+        """The arrays' sizes and types (accelerations and stresses only where an effect adds them)."""
+        n_nodes = int(np.prod(dims))
+        n_grid = n_batch * n_objects * n_nodes
+        n_contact = n_batch * n_nodes if n_objects > 1 else 1
+        return [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3), (n_grid, wp.vec3),
+                (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
+                (n_contact, float)]
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -348,6 +388,8 @@ class _Colliders:
 
 
 ADJOINT_PARTS = 2
+SUBSTEP_HEADROOM = 1.15
+"""On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
 """Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
 _UNPACKED = object()
 """What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
@@ -355,14 +397,27 @@ _UNPACKED = object()
 
 @dataclass
 class _FrameTape:
-    """The buffers of one frame recomputed on a tape.
+    """The buffers of a frame recorded on a tape, for up to ``len(grids)`` substeps.
 
-    A state per substep boundary, a grid per substep, and the colliders' poses over the frame.
+    A state per substep boundary and a grid per substep, their values in one allocation
+    (``values``) and their gradients in another (``grads``), laid out state 0, grid 0, state 1,
+    ... so that a frame of n substeps is the first ``prefix(n)`` bytes of each; the colliders'
+    poses over the frame; and per substep count the tape that last recorded a frame here
+    (``Simulator._record_frame``).
     """
 
     states: list[_State]
     grids: list[_Grid]
     colliders: _Colliders
+    values: wp.array
+    grads: wp.array
+    state_bytes: int
+    grid_bytes: int
+    tapes: dict[int, wp.Tape] = field(default_factory=dict)
+
+    def prefix(self, n_sub: int) -> int:
+        """The bytes of a frame of ``n_sub`` substeps (values, or gradients)."""
+        return (n_sub + 1) * self.state_bytes + n_sub * self.grid_bytes
 
 
 def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object]) -> list:
@@ -522,7 +577,9 @@ class Simulator:
         self._record: dict | None = None
         self._final: _State | None = None
         self._buffers: tuple[list[_State], _Grid] | None = None
-        self._tape_buffers: tuple[list[_FrameTape], _State, wp.array] | None = None
+        self._tape_buffers: list[_FrameTape] | None = None
+        self._adjoint_buffers: tuple[_State, wp.array] | None = None
+        self._kept: list[wp.array] = []
         self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
         self._graphs: dict[tuple, wp.context.Graph] = {}
         self._seen: set[tuple] = set()
@@ -646,9 +703,10 @@ class Simulator:
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
         """Fill the collider pose arrays of the rollouts for one frame (``_pose_colliders``)."""
         rows = n_sub * len(self.config.colliders) or 1
-        if rows != self._collider_rows:
-            self._colliders = self._collider_arrays(n_sub)
-            self._collider_rows = rows
+        if rows > self._collider_rows:  # room for more, as the tape buffers have (their docstring)
+            capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
+            self._colliders = self._collider_arrays(capacity)
+            self._collider_rows = self._colliders.pos.shape[0]
             self._forget_graphs()
         self._pose_colliders(self._colliders, frame, n_sub, dt)
 
@@ -666,10 +724,11 @@ class Simulator:
         if not colliders:
             return
         t0 = frame * self.config.frame_dt
-        pos = np.zeros((n_sub, len(colliders), 3), np.float32)
-        rot = np.zeros((n_sub, len(colliders), 4), np.float32)
-        vel = np.zeros((n_sub, len(colliders), 3), np.float32)
-        omega = np.zeros((n_sub, len(colliders), 3), np.float32)
+        rows = target.pos.shape[0] // len(colliders)  # n_sub or more (the rows past n_sub unused)
+        pos = np.zeros((rows, len(colliders), 3), np.float32)
+        rot = np.zeros((rows, len(colliders), 4), np.float32)
+        vel = np.zeros((rows, len(colliders), 3), np.float32)
+        omega = np.zeros((rows, len(colliders), 3), np.float32)
         for s in range(n_sub):
             for c, collider in enumerate(colliders):
                 t = t0 + s * dt
@@ -845,27 +904,33 @@ class Simulator:
             self._substep(states[current], states[1 - current], grid, s, dt)
             current = 1 - current
 
-    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> wp.Tape:
-        """Recompute one frame from ``frame.states[0]`` on a tape, its gradients cleared first.
+    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> _FrameTape:
+        """Compute one frame from ``frame.states[0]`` on a tape, its gradients cleared first.
 
         The gradients are cleared before the recomputation moves the grids' boxes
         (``_Grid.zero_grad`` clears the box of the substep that last ran on a grid, where the
-        adjoint of that substep wrote).
+        adjoint of that substep wrote; on a GPU the box is the grid, and one memset clears all).
         """
-        for state in frame.states:
-            state.zero_grad()
-        for grid in frame.grids:
-            grid.zero_grad()
-        tape = wp.Tape()
+        self._zero_frame_grad(frame)
+        tape = frame.tapes[n_sub] = wp.Tape()
         with tape:
             self._replicate()
             for s in range(n_sub):
                 self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders)
-        return tape
+        return frame
 
-    def _frame_adjoint(self, tape: wp.Tape, frame: _FrameTape, adjoint: _State, seed: wp.array,
+    def _zero_frame_grad(self, frame: _FrameTape) -> None:
+        if self.device != "cpu":
+            frame.grads.zero_()
+            return
+        for state in frame.states:
+            state.zero_grad()
+        for grid in frame.grids:
+            grid.zero_grad()
+
+    def _frame_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array,
                        helper: ThreadPoolExecutor | None = None) -> None:
-        """Carry ``adjoint`` back over the frame that ``tape`` recorded (``_record_frame``).
+        """Carry ``adjoint`` back over a frame of ``n_sub`` substeps recorded on ``frame``.
 
         ``adjoint`` holds dL/d(state) at the end of the frame (without the frame's own dL/dx,
         which is in ``seed``) and leaves holding dL/d(state) at its start. Nothing here records
@@ -873,10 +938,11 @@ class Simulator:
         CPU, P2G's adjoint runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
         (``kernels.p2g`` says why it may).
         """
+        tape = frame.tapes[n_sub]
         self.params.zero_replica_grad()
         for total in self._uniform_sums:
             total.grad.zero_()
-        last = frame.states[-1]
+        last = frame.states[n_sub]
         wp.launch(_add_vec3, dim=self.n_batch * self.n_particles, inputs=[adjoint.x, seed],
                   outputs=[last.x.grad], device=self.device, record_tape=False)
         wp.copy(last.v.grad, adjoint.v)
@@ -1072,23 +1138,33 @@ class Simulator:
                          dtype=float, device=self.device)
         early = self.device == "cpu" or progress is not None
         self._keep_positions(states[0], positions, 0)
-        checkpoints = []
-        if grad:
-            checkpoints.append(_clone(states[0]))
-        current = 0
+        kept = self._kept_frames(n_frames, n_sub) if grad else None
+        checkpoints = [] if kept or not grad else [_clone(states[0])]
+        state, current = states[0], 0
         for frame in range(n_frames):
-            self._collider_poses(start_frame + frame, n_sub, dt)
-            self._launch(("frame", n_sub, dt, current),
-                         partial(self._frame, states, current, grid, n_sub, dt))
-            current = (current + n_sub) % 2
+            if kept:  # recorded on a tape, whose states and grids are kept for ``backward``
+                work = self._tape_buffers_for(n_sub)[0]
+                self._pose_colliders(work.colliders, start_frame + frame, n_sub, dt)
+                self._launch(("kept", n_sub, dt, frame == 0), partial(
+                    self._record_kept, work, states[0] if frame == 0 else work.states[n_sub], n_sub, dt))
+                wp.copy(kept[frame], work.values, count=work.prefix(n_sub) // 4)
+                start, state = self._kept_states(kept[frame], work, n_sub)
+                if frame == 0:
+                    checkpoints.append(start)
+            else:
+                self._collider_poses(start_frame + frame, n_sub, dt)
+                self._launch(("frame", n_sub, dt, current),
+                             partial(self._frame, states, current, grid, n_sub, dt))
+                current = (current + n_sub) % 2
+                state = states[current]
             if check:
                 frame_stats = stats[frame * row:(frame + 1) * row]
-                self._check(states[current], frame_stats)
+                self._check(state, frame_stats)
                 if early:
                     self._diverged(frame_stats.numpy(), start_frame + frame + 1, dt)
-            self._keep_positions(states[current], positions, frame + 1)
+            self._keep_positions(state, positions, frame + 1)
             if grad:
-                checkpoints.append(_clone(states[current]))
+                checkpoints.append(state if kept else _clone(state))
             if progress is not None:
                 progress(frame + 1)
         if check and not early:
@@ -1096,8 +1172,8 @@ class Simulator:
                 self._diverged(frame_stats, start_frame + frame + 1, dt)
         out = positions.numpy().reshape(n_frames + 1, B, N, 3)
         self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt,
-                         "start_frame": start_frame} if grad else None)
-        self._final = states[current]
+                         "start_frame": start_frame, "kept": kept} if grad else None)
+        self._final = state
         _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
                    n_frames, n_sub, dt, N, B)
         return out
@@ -1116,20 +1192,34 @@ class Simulator:
         dL_dx = np.asarray(dL_dx, dtype=np.float32)
         if dL_dx.shape != (n_frames + 1, B, N, 3):
             raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
-        frames, adjoint, seed = self._tape_buffers_for(n_sub)
+        adjoint, seed = self._adjoint_state()
         self.params.zero_grad()
         self.volume.grad.zero_()
         for array in adjoint.arrays:
             array.zero_()
 
+        def seeded(index: int) -> None:
+            seed.assign(np.ascontiguousarray(self._inward(dL_dx[index + 1])).reshape(-1, 3))
+
+        frames = self._tape_buffers_for(n_sub)
+
         def prepare(index: int) -> _FrameTape:  # the host's part: frame ``index`` at its start
             frame = frames[index % len(frames)]
-            frame.states[0].copy_from(checkpoints[index])
+            if kept:
+                wp.copy(frame.values, kept[index], count=frame.prefix(n_sub) // 4)
+            else:
+                frame.states[0].copy_from(checkpoints[index])
             self._pose_colliders(frame.colliders, start + index, n_sub, dt)
             return frame
 
-        def seeded(index: int) -> None:
-            seed.assign(np.ascontiguousarray(self._inward(dL_dx[index + 1])).reshape(-1, 3))
+        kept, self._record["kept"] = self._record["kept"], None  # a second backward recomputes
+        if kept:  # a frame's states and grids back in place, its adjoint (one graph on a GPU)
+            frame = frames[0]
+            for index in reversed(range(n_frames)):
+                prepare(index)
+                seeded(index)
+                self._launch(("adjoint", n_sub, dt), partial(self._kept_adjoint, frame, n_sub, adjoint, seed))
+            return self._gradients(adjoint)
 
         if len(frames) == 1:  # a CUDA device: a frame's recomputation and adjoint, one graph
             frame = frames[0]
@@ -1137,19 +1227,26 @@ class Simulator:
                 prepare(index)
                 seeded(index)
                 self._launch(("backward", n_sub, dt), lambda: self._frame_adjoint(
-                    self._record_frame(frame, n_sub, dt), frame, adjoint, seed))
+                    self._record_frame(frame, n_sub, dt), n_sub, adjoint, seed))
         else:  # the CPU: a second thread recomputes the frame before while this one's adjoint runs
-            def recorded(index: int) -> wp.Tape:
-                return self._record_frame(prepare(index), n_sub, dt)
+            def recorded(index: int) -> _FrameTape:
+                frame = prepare(index)
+                self._record_frame(frame, n_sub, dt)
+                return frame
 
             with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(ADJOINT_PARTS - 1) as helper:
                 pending = ahead.submit(recorded, n_frames - 1)
                 for index in reversed(range(n_frames)):
-                    tape = pending.result()
+                    frame = pending.result()
                     if index > 0:
                         pending = ahead.submit(recorded, index - 1)
                     seeded(index)
-                    self._frame_adjoint(tape, frames[index % 2], adjoint, seed, helper)
+                    self._frame_adjoint(frame, n_sub, adjoint, seed, helper)
+        return self._gradients(adjoint)
+
+    def _gradients(self, adjoint: _State) -> Gradients:
+        """What ``backward`` returns, once ``adjoint`` holds dL/d(state) at the first frame."""
+        B, N = self.n_batch, self.n_particles
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
             params={name: self.params.grad(name) for name in self.params.specs},
@@ -1157,20 +1254,78 @@ class Simulator:
             volume=self._outward(self.volume.grad.numpy().reshape(B, N).astype(np.float64)),
         )
 
-    def _tape_buffers_for(self, n_sub: int) -> tuple[list[_FrameTape], _State, wp.array]:
-        """Buffers of a frame on a tape (two on the CPU, ``backward`` says why), the adjoint, the seed."""
-        if self._tape_buffers is None or len(self._tape_buffers[0][0].grids) != n_sub:
+    def _frame_tape(self, capacity: int) -> _FrameTape:
+        """New buffers to record a frame of up to ``capacity`` substeps on."""
+        B, total, d = self.n_batch, self.n_batch * self.n_particles, self.device
+        state_bytes = _Arena.offsets(_State.specs(total))[-1]
+        grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
+                                                self._accelerated))[-1]
+        sizes = [state_bytes, grid_bytes] * capacity + [state_bytes]
+        values, grads = (wp.zeros(sum(max(n, _Arena.ALIGN) for n in sizes) // 4, dtype=wp.float32, device=d)
+                         for _ in range(2))
+        memory = list(zip(_blocks(values, sizes), _blocks(grads, sizes), strict=True))
+        return _FrameTape([_State(total, d, True, m) for m in memory[0::2]],
+                          [_Grid(B, self.n_objects, self.dims, total, self._stress, d, True, self._accelerated, m)
+                           for m in memory[1::2]],
+                          self._collider_arrays(capacity), values, grads, state_bytes, grid_bytes)
+
+    def _tape_buffers_for(self, n_sub: int) -> list[_FrameTape]:
+        """Buffers of a frame recomputed on a tape (two on the CPU, ``backward`` says why).
+
+        On a GPU they have room for ``SUBSTEP_HEADROOM`` more substeps than the first frame
+        asked for: a fit's substeps change with its stiffness from one iteration to the next,
+        and new buffers would drop every captured graph.
+        """
+        if self._tape_buffers is None or len(self._tape_buffers[0].grids) < n_sub:
             self._tape_buffers = None  # free the old buffers before allocating the new ones
             self._forget_graphs()
-            total = self.n_batch * self.n_particles
-            frames = [_FrameTape([_State(total, self.device, True) for _ in range(n_sub + 1)],
-                                 [_Grid(self.n_batch, self.n_objects, self.dims, total, self._stress,
-                                        self.device, True, self._accelerated) for _ in range(n_sub)],
-                                 self._collider_arrays(n_sub))
-                      for _ in range(2 if self.device == "cpu" else 1)]
-            self._tape_buffers = (frames, _State(total, self.device, False),
-                                  wp.zeros(total, dtype=wp.vec3, device=self.device))
+            capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
+            self._tape_buffers = [self._frame_tape(capacity) for _ in range(2 if self.device == "cpu" else 1)]
         return self._tape_buffers
+
+    def _adjoint_state(self) -> tuple[_State, wp.array]:
+        """The adjoint state that ``backward`` carries back, and the buffer of a frame's dL/dx."""
+        if self._adjoint_buffers is None:
+            total = self.n_batch * self.n_particles
+            self._adjoint_buffers = (_State(total, self.device, False),
+                                     wp.zeros(total, dtype=wp.vec3, device=self.device))
+        return self._adjoint_buffers
+
+    def _kept_frames(self, n_frames: int, n_sub: int) -> list[wp.array] | None:
+        """Where each of ``n_frames`` frames' values go (``_FrameTape.values``), if they fit.
+
+        On a CUDA device, within ``SimConfig.tape_memory``; else None, and the kept blocks are
+        freed. Blocks are kept for later rollouts of as many frames or fewer.
+        """
+        budget = self.config.tape_memory
+        if budget is None and self.device != "cpu":
+            budget = wp.get_device(self.device).total_memory / 3e9
+        size = self._tape_buffers_for(n_sub)[0].values.size if self.device != "cpu" and budget > 0 else 0
+        if not size or n_frames * size * 4 > budget * 1e9:
+            self._kept = []
+            return None
+        if self._kept and self._kept[0].shape[0] != size:
+            self._kept = []
+        while len(self._kept) < n_frames:
+            self._kept.append(wp.empty(size, dtype=wp.float32, device=self.device))
+        return self._kept[:n_frames]
+
+    def _kept_states(self, block: wp.array, frame: _FrameTape, n_sub: int) -> tuple[_State, _State]:
+        """The first and the last state of a frame of ``n_sub`` substeps kept in ``block``."""
+        total = self.n_batch * self.n_particles
+        views = _blocks(block, [frame.prefix(n_sub) - frame.state_bytes, frame.state_bytes])
+        return (_State(total, self.device, False, (views[0], None)),
+                _State(total, self.device, False, (views[1], None)))
+
+    def _record_kept(self, frame: _FrameTape, start: _State, n_sub: int, dt: float) -> None:
+        """Record a frame of a rollout from ``start`` on ``frame`` (``_kept_frames`` says why)."""
+        frame.states[0].copy_from(start)
+        self._record_frame(frame, n_sub, dt)
+
+    def _kept_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array) -> None:
+        """The adjoint of a frame whose values ``backward`` put back on ``frame``."""
+        self._zero_frame_grad(frame)
+        self._frame_adjoint(frame, n_sub, adjoint, seed)
 
 
 def _clone(state: _State) -> _State:
