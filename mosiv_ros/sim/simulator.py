@@ -707,7 +707,7 @@ class Simulator:
             capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
             self._colliders = self._collider_arrays(capacity)
             self._collider_rows = self._colliders.pos.shape[0]
-            self._forget_graphs()
+            self._forget_graphs("frame")
         self._pose_colliders(self._colliders, frame, n_sub, dt)
 
     def _collider_arrays(self, n_sub: int) -> _Colliders:
@@ -1030,10 +1030,15 @@ class Simulator:
             self._graphs[key] = graph
         wp.capture_launch(graph)
 
-    def _forget_graphs(self) -> None:
-        """Drop the captured graphs and recorded commands (their arrays are being replaced)."""
-        self._graphs.clear()
-        self._seen.clear()
+    def _forget_graphs(self, *kinds: str) -> None:
+        """Drop the recorded commands and the captured graphs of ``kinds`` (their keys' first item).
+
+        The arrays they ran on are being replaced: a rollout's colliders (``"frame"``), or the
+        tape's buffers (``"backward"``, ``"kept"``, ``"adjoint"``).
+        """
+        for key in [key for key in self._graphs if key[0] in kinds]:
+            del self._graphs[key]
+        self._seen = {key for key in self._seen if key[0] not in kinds}
         self._commands.clear()
         self._adjoint_commands.clear()
 
@@ -1278,7 +1283,7 @@ class Simulator:
         """
         if self._tape_buffers is None or len(self._tape_buffers[0].grids) < n_sub:
             self._tape_buffers = None  # free the old buffers before allocating the new ones
-            self._forget_graphs()
+            self._forget_graphs("backward", "kept", "adjoint")
             capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
             self._tape_buffers = [self._frame_tape(capacity) for _ in range(2 if self.device == "cpu" else 1)]
         return self._tape_buffers
