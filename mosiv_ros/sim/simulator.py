@@ -104,7 +104,8 @@ class SimConfig:
     so that ``backward`` copies each frame's back and runs its adjoint instead of first
     recomputing it; a rollout that needs more, every rollout at 0, and every rollout on the CPU
     (where a second thread recomputes a frame while the adjoint of the next one runs) keep one
-    checkpoint a frame and recompute. None (default): a third of the device's memory.
+    checkpoint a frame and recompute. None (default): a third of the device's memory, at most half
+    of what is free (a card shared with other processes).
     """
 
     dx: float
@@ -1303,8 +1304,10 @@ class Simulator:
         freed. Blocks are kept for later rollouts of as many frames or fewer.
         """
         budget = self.config.tape_memory
-        if budget is None and self.device != "cpu":
-            budget = wp.get_device(self.device).total_memory / 3e9
+        if budget is None and self.device != "cpu":  # what the kept blocks hold counts as free
+            card = wp.get_device(self.device)
+            free = card.free_memory + sum(block.capacity for block in self._kept)
+            budget = min(card.total_memory / 3, free / 2) / 1e9
         size = self._tape_buffers_for(n_sub)[0].values.size if self.device != "cpu" and budget > 0 else 0
         if not size or n_frames * size * 4 > budget * 1e9:
             self._kept = []
