@@ -90,12 +90,17 @@ class AntiDrag(Effect):
 
 def test_a_diverging_run_stops_with_an_error_naming_object_and_frame_not_nans():
     sim = falling_ball("elastic", {"E": 3e4}, effects=(AntiDrag(rate=400.0),))
+    sim.params.update({"anti_drag.rate": 0.0})
+    sim.rollout(1, grad=True)
+    sim.params.update({"anti_drag.rate": 400.0})
     with pytest.raises(SimulationDiverged) as raised:
-        sim.rollout(20)
+        sim.rollout(20, grad=True)
     error = raised.value
     assert error.object_name == "ball" and 1 <= error.frame < 20
     assert "frame" in str(error) and "'ball'" in str(error)
     assert "exceeds one grid cell per substep" in error.reason or "non-finite" in error.reason
+    with pytest.raises(RuntimeError, match="preceding rollout"):  # nothing left of either rollout
+        sim.frame_state(0)
 
 
 def test_extension_point_effect_parameters_live_in_the_parameter_table():

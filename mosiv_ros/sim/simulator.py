@@ -1126,6 +1126,7 @@ class Simulator:
         self.params.validate()
         n_sub, dt = self.time_step(substeps)
         B, N = self.n_batch, self.n_particles
+        self._record = None  # a rollout that stops diverging leaves none (kept frames are rewritten)
         if self._buffers is None:
             self._buffers = ([_State(B * N, self.device, False) for _ in range(2)],
                              _Grid(B, self.n_objects, self.dims, B * N, self._stress,
