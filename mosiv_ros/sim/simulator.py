@@ -389,9 +389,9 @@ class _Colliders:
 
 
 ADJOINT_PARTS = 2
+"""Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
-"""Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
 _UNPACKED = object()
 """What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
 
@@ -921,6 +921,7 @@ class Simulator:
         return frame
 
     def _zero_frame_grad(self, frame: _FrameTape) -> None:
+        """Clear the gradients of ``frame``'s states and grids (``_record_frame`` says how)."""
         if self.device != "cpu":
             frame.grads.zero_()
             return
