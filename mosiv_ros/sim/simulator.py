@@ -210,7 +210,7 @@ class _Arena:
     memset node of about a microsecond whatever its size, which at the few thousand particles
     of an identification was a fifth of a frame's backward (benchmarks/RESULTS.md). The arrays
     are views of ``memory``, which only the arena holds: whoever keeps the arrays keeps it.
-    ``memory`` may be given: a view of a larger allocation (``_blocks``) that holds several arenas.
+    ``memory`` may be given: an array of a larger arena (float32), which holds several arenas.
     """
 
     ALIGN = 16
@@ -236,18 +236,8 @@ class _Arena:
         self.memory.zero_()
 
 
-def _blocks(block: wp.array, sizes: list[int]) -> list[wp.array]:
-    """Consecutive views of ``block`` (float32) of ``sizes`` bytes each (multiples of 16)."""
-    views, offset = [], 0
-    for size in sizes:
-        views.append(wp.array(ptr=block.ptr + offset, dtype=wp.float32, shape=(max(size, _Arena.ALIGN) // 4,),
-                              device=block.device, owner=False))
-        offset += max(size, _Arena.ALIGN)
-    return views
-
-
 Memory = tuple[wp.array, wp.array | None]
-"""Where an arena's values and gradients go (``_blocks`` views), or None for allocations of their own."""
+"""Where an arena's values and gradients go (arrays of larger arenas), or None for allocations of their own."""
 
 
 def _arrays(specs: list[tuple[int, type]], device: str, requires_grad: bool,
@@ -705,8 +695,7 @@ class Simulator:
         """Fill the collider pose arrays of the rollouts for one frame (``_pose_colliders``)."""
         rows = n_sub * len(self.config.colliders) or 1
         if rows > self._collider_rows:  # room for more, as the tape buffers have (their docstring)
-            capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
-            self._colliders = self._collider_arrays(capacity)
+            self._colliders = self._collider_arrays(self._capacity(n_sub))
             self._collider_rows = self._colliders.pos.shape[0]
             self._forget_graphs("frame")
         self._pose_colliders(self._colliders, frame, n_sub, dt)
@@ -1268,14 +1257,15 @@ class Simulator:
         state_bytes = _Arena.offsets(_State.specs(total))[-1]
         grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
                                                 self._accelerated))[-1]
-        sizes = [state_bytes, grid_bytes] * capacity + [state_bytes]
-        values, grads = (wp.zeros(sum(max(n, _Arena.ALIGN) for n in sizes) // 4, dtype=wp.float32, device=d)
-                         for _ in range(2))
-        memory = list(zip(_blocks(values, sizes), _blocks(grads, sizes), strict=True))
+        # the arenas' sizes are multiples of ALIGN: in the frame's arenas they lie back to back
+        specs = [(state_bytes // 4, wp.float32), (grid_bytes // 4, wp.float32)] * capacity + [
+            (state_bytes // 4, wp.float32)]
+        values, grads = _Arena(specs, d), _Arena(specs, d)
+        memory = list(zip(values.arrays, grads.arrays, strict=True))
         return _FrameTape([_State(total, d, True, m) for m in memory[0::2]],
                           [_Grid(B, self.n_objects, self.dims, total, self._stress, d, True, self._accelerated, m)
                            for m in memory[1::2]],
-                          self._collider_arrays(capacity), values, grads, state_bytes, grid_bytes)
+                          self._collider_arrays(capacity), values.memory, grads.memory, state_bytes, grid_bytes)
 
     def _tape_buffers_for(self, n_sub: int) -> list[_FrameTape]:
         """Buffers of a frame recomputed on a tape (two on the CPU, ``backward`` says why).
@@ -1287,9 +1277,13 @@ class Simulator:
         if self._tape_buffers is None or len(self._tape_buffers[0].grids) < n_sub:
             self._tape_buffers = None  # free the old buffers before allocating the new ones
             self._forget_graphs("backward", "kept", "adjoint")
-            capacity = n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
-            self._tape_buffers = [self._frame_tape(capacity) for _ in range(2 if self.device == "cpu" else 1)]
+            self._tape_buffers = [self._frame_tape(self._capacity(n_sub))
+                                  for _ in range(2 if self.device == "cpu" else 1)]
         return self._tape_buffers
+
+    def _capacity(self, n_sub: int) -> int:
+        """The substeps that new frame buffers or collider poses have room for (``_tape_buffers_for``)."""
+        return n_sub if self.device == "cpu" else math.ceil(n_sub * SUBSTEP_HEADROOM)
 
     def _adjoint_state(self) -> tuple[_State, wp.array]:
         """The adjoint state that ``backward`` carries back, and the buffer of a frame's dL/dx."""
@@ -1323,7 +1317,8 @@ class Simulator:
     def _kept_states(self, block: wp.array, frame: _FrameTape, n_sub: int) -> tuple[_State, _State]:
         """The first and the last state of a frame of ``n_sub`` substeps kept in ``block``."""
         total = self.n_batch * self.n_particles
-        views = _blocks(block, [frame.prefix(n_sub) - frame.state_bytes, frame.state_bytes])
+        views = _Arena([((frame.prefix(n_sub) - frame.state_bytes) // 4, wp.float32),
+                        (frame.state_bytes // 4, wp.float32)], self.device, block).arrays
         return (_State(total, self.device, False, (views[0], None)),
                 _State(total, self.device, False, (views[1], None)))
 
