@@ -112,7 +112,7 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
               "window": timed(identifier, paths, window, lambda: identifier.timing, repeats),
               "search": timed(identifier, paths, search, lambda: identifier.search.timing, repeats),
               "tapes_kept": kept}
-    if tapes:  # switching drops the captured graphs: each round captures them again first
+    if tapes:  # kept and recomputed frames have CUDA graphs of their own: untimed calls first
         result["tapes"] = []
         for _ in range(2):
             for memory in (None, 0.0):

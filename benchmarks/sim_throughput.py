@@ -64,9 +64,8 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
 
     n_sub, _ = sim.time_step()
     rng = np.random.default_rng(0)
-    # warm-up: compilation and the CUDA graphs' captures, on each graph's second run (the
-    # backward's first run allocates its buffers and drops the graphs captured before, so the
-    # forward comes after it; kept tapes have graphs of their own for every frame)
+    # warm-up: compilation and the CUDA graphs' captures, each on its graph's second run (a
+    # rollout's first frame has a graph of its own when the tapes are kept)
     for _ in range(2):
         traj = sim.rollout(frames, grad=True)
         sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
