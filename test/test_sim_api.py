@@ -344,14 +344,15 @@ def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named
               sim._scene)
 
 
-def _two_balls(n_batch=1, effects=None):
+def _two_balls(n_batch=1, effects=None, **config):
     dx = 0.02
     ball = sphere((0.12, 0.2, 0.2), 0.04, dx / 2)
     block = box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)
     return scene([ball, block], [ObjectModel("ball", "elastic", {"E": 3e4}),
                                  ObjectModel("block", "plastic", {"E": 5e4})],
                  dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=0.05),
-                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=n_batch, effects=effects)
+                 velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)], n_batch=n_batch, effects=effects,
+                 **config)
 
 
 def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds():
@@ -395,15 +396,9 @@ def test_gradients_after_an_earlier_backward_elsewhere_equal_a_fresh_simulators(
 @pytest.mark.skipif(DEVICE == "cpu", reason="tapes are kept on a CUDA device: run with MOSIV_TEST_DEVICE=cuda:0")
 def test_tapes_kept_from_the_rollout_give_the_gradients_of_recomputed_frames():
     """``SimConfig.tape_memory``: frames kept by the rollout, or recomputed by the backward."""
-    dx, floor = 0.02, 0.05
     finger = Collider("sphere", (0.03,), np.array([0.0, 0.2]),
                       np.array([[0.05, 0.2, 0.2], [0.35, 0.2, 0.2]]), friction=0.5)
-    sims = {memory: scene([sphere((0.12, 0.2, 0.2), 0.04, dx / 2), box((0.27, 0.2, 0.2), (0.04, 0.04, 0.04), dx / 2)],
-                          [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {"E": 5e4})],
-                          dx=dx, lo=(0, 0, 0), hi=(0.6, 0.4, 0.4), ground=Ground(height=floor),
-                          colliders=[finger], velocities=[(1.0, 0.0, -0.5), (-1.0, 0.0, 0.0)],
-                          n_batch=2, tape_memory=memory)
-            for memory in (0.0, 1.0)}
+    sims = {memory: _two_balls(n_batch=2, colliders=[finger], tape_memory=memory) for memory in (0.0, 1.0)}
     rng = np.random.default_rng(1)
     results = {memory: [] for memory in sims}
     substeps = []
