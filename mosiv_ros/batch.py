@@ -307,8 +307,13 @@ def run_batch(paths: Iterable[str | Path], out: str | Path, config: RunConfig,
         interrupted = True
         for ref in running:
             ray.cancel(ref, force=True)
+        # a recording that wrote its summary as Ctrl-C came is done, though its result never arrived
+        for item in items:
+            summary = directory.path / item.name / SUMMARY
+            if item.name not in entries and summary.is_file():
+                entries[item.name] = json.loads(summary.read_text(encoding="utf-8"))
         _LOG.warning("interrupted: %d running recordings cancelled; the finished ones are kept",
-                     len(running))
+                     sum(item.name not in entries for item in running.values()))
     finally:
         if started:
             ray.shutdown()
