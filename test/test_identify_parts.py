@@ -155,3 +155,25 @@ def test_a_resynchronised_window_starts_on_the_observed_centroid_and_its_velocit
                                atol=1e-5)
     # the anchor's own state is left as it was: its centroid is elsewhere
     assert np.linalg.norm(anchor[3].x[0].mean(axis=0) - observed[3, 0]) > 1e-3
+
+
+def test_the_initial_velocity_passes_over_frames_the_stream_lost_and_keeps_a_resting_object_at_rest():
+    from mosiv_ros.identify.observations import Observations
+
+    dt, v0, g = 1 / 30, np.array([1.2, -0.3, 2.0]), np.array([0.0, 0.0, -9.81])
+    rng = np.random.default_rng(3)
+    shape = rng.normal(scale=0.02, size=(200, 3))
+    shape -= shape.mean(axis=0)
+    points = []
+    for f in range(10):
+        t = f * dt
+        thrown = shape + v0 * t + 0.5 * g * t**2
+        resting = shape + [0.3, 0.0, 0.02] + rng.normal(scale=3e-4, size=3)  # a hull's jitter
+        points.append([thrown, resting])
+    for lost in (1, 2, 3):  # the stream lost these frames: no points of either object
+        points[lost] = [np.zeros((0, 3)), np.zeros((0, 3))]
+    velocity = Observations(dt, points, [1, 2]).initial_velocities()
+    np.testing.assert_allclose(velocity[0], v0, atol=1e-9)
+    np.testing.assert_array_equal(velocity[1], 0.0)
+    # past the horizon nothing is guessed: an object seen once in it keeps zero
+    assert not Observations(dt, points[:1] + [[np.zeros((0, 3))] * 2] * 9, [1, 2]).initial_velocities().any()

@@ -276,8 +276,12 @@ class Observations:
                     out[f, k] = pts.mean(axis=0)
         return out
 
-    def initial_velocities(self, frames: int = 4) -> np.ndarray:
-        """(K, 3) centroid velocity at t = 0 from the first ``frames`` frames.
+    def initial_velocities(self, frames: int = 4, horizon: int = 8) -> np.ndarray:
+        """(K, 3) centroid velocity at t = 0 from each object's first ``frames`` observed frames.
+
+        A frame without the object's points (lost by the stream, or the object hidden) is passed
+        over, within the first ``horizon`` frames: a stream that lost frames 1-3 still gives its
+        thrown ball a velocity, from frames 0, 4, 5 and 6 at their own times.
 
         Two motions are fitted to each object's centroids by least squares: at rest (x = x0)
         and uniformly accelerated (x = x0 + v0 t + a t^2 / 2, a free: gravity in flight,
@@ -288,12 +292,12 @@ class Observations:
         move past it (or jumps once where it was occluded), and a difference of frames would
         read that as a velocity.
         """
-        c = self.centroids()[:frames]
+        c = self.centroids()[:horizon]
         t = np.arange(len(c)) * self.frame_dt
         v0 = np.zeros((self.n_objects, 3))
         for k in range(self.n_objects):
-            seen = ~np.isnan(c[:, k, 0])
-            if seen.sum() < 2:
+            seen = np.flatnonzero(~np.isnan(c[:, k, 0]))[:frames]
+            if len(seen) < 2:
                 continue
             tk, ck = t[seen], c[seen, k]
             rest = float(np.sum((ck - ck.mean(axis=0)) ** 2))
