@@ -123,6 +123,27 @@ def test_a_camera_that_stops_publishing_degrades_the_nodes_output_but_never_stop
 
 
 @pytest.mark.slow
+def test_a_burst_of_frames_faster_than_the_node_takes_them_reaches_it_whole(tmp_path, listener):
+    # the replay as fast as possible: each camera topic gets its 20 messages within milliseconds,
+    # more than the sensor-data profile's keep last 5 (which kept 6 of the 20 frame sets); the
+    # node's subscriptions hold image_history (30) until it takes them
+    n_frames = 20
+    recording = sphere_recording(touching_pair(), n_frames=n_frames, n_cameras=2, width=64, height=48)
+    bag = write_recording(recording, tmp_path / "burst")
+    params = {"scene": str(bag), "cameras": ["cam0", "cam1"], "use_depth": False, **RECON}
+    with Graph([NodeSpec("reconstruction_node", params)], sink=None) as graph:
+        node = graph.nodes["reconstruction_node"]
+        node.wait_for_line("subscribed to cameras", timeout=60)
+        replay_params = {"bag": str(bag), "rate": 0.0, "wait_for_subscribers": 1, "linger": 0.5}
+        with Graph([NodeSpec("bag_replay_node", replay_params)], sink=None) as replay:
+            assert replay.nodes["bag_replay_node"].process.wait(60) == 0
+        node.wait_for_line(f"frame set {n_frames}:", timeout=30)
+        assert node.process.poll() is None
+        sets = [line for line in node.lines if ": frame set " in line]
+    assert len(sets) == n_frames and all("cameras cam0, cam1," in line for line in sets), "\n".join(sets)
+
+
+@pytest.mark.slow
 def test_reconstruction_node_lets_the_gripper_on_gripper_pose_hide_the_cube_as_the_core_does(listener):
     # bags/pressed_cube: a plate the masks leave out presses the cube; the node places it from
     # /gripper/pose and /tf_static, and its clouds are the in-process core's, which uses the poses

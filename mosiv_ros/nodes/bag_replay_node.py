@@ -80,6 +80,7 @@ class BagReplayNode(Node):
                 return
             if self._stop.wait(0.05):
                 return
+        self.get_logger().info(f"every image topic has {wanted} subscriber(s)")
 
     def _replay_once(self) -> int:
         count = 0

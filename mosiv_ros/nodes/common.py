@@ -51,6 +51,17 @@ LATCHED_QOS = QoSProfile(
 )
 #: Camera streams (DESIGN.md: the sensor-data profile).
 SENSOR_QOS = qos_profile_sensor_data
+
+
+def sensor_qos(depth: int) -> QoSProfile:
+    """The sensor-data profile (best effort, volatile) keeping the last ``depth`` messages.
+
+    A subscriber's own history: it matches any publisher of the profile, and holds ``depth``
+    messages while its node is too busy to take them (keep last 5 loses a frame to a 0.2 s stall
+    at 30 fps).
+    """
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=SENSOR_QOS.reliability,
+                      durability=SENSOR_QOS.durability)
 #: Per-frame pipeline streams: every frame matters to the next stage, also to a stage that
 #: starts late (identify_node needs the whole window): reliable, and transient_local with the
 #: last STREAM_HISTORY messages (30 s at 30 fps) kept for late subscribers.

@@ -45,13 +45,13 @@ from mosiv_ros.io.scene import Scene
 from mosiv_ros.io.streams import CameraFrameAssembler, mask_pixel_counts
 from mosiv_ros.io.transforms import WORLD_FRAME, StaticTransforms
 from mosiv_ros.nodes.common import (
-    SENSOR_QOS,
     STREAM_QOS,
     TF_STATIC_QOS,
     declare_config,
     gripper_poses,
     guarded,
     main_for,
+    sensor_qos,
 )
 from mosiv_ros.recon import Reconstructor, SurfaceTracker
 from mosiv_ros.recon.gripper import gripper_at
@@ -59,7 +59,9 @@ from mosiv_ros.recon.gripper import gripper_at
 NAME = "reconstruction_node"
 SUMMARY = "group multi-camera frames by stamp and reconstruct each object's geometry per frame"
 TRACKS_TOPIC = "/mosiv/surface_tracks"
-IMAGE_TOPICS = {"rgb": "color/image_raw", "mask": "instance_mask", "depth": "depth/image_rect"}
+IMAGE_TOPICS = {"mask": "instance_mask", "depth": "depth/image_rect", "rgb": "color/image_raw"}
+"""A camera's image topics, subscribed in this order: the colour image, on whose subscription a replay
+waits, last."""
 MAX_UNCALIBRATED = 30
 """Frame sets kept while waiting for calibration; older ones are dropped with a warning."""
 BACKLOG_WARNING = 10
@@ -116,22 +118,22 @@ class ReconstructionNode(Node):
 
     def _add_cameras(self, cameras: list[str]) -> None:
         topics = {name for name, _ in self.get_topic_names_and_types()}
+        qos = sensor_qos(self.config.image_history)
         for camera in cameras:
             depth_topic = f"/{camera}/{IMAGE_TOPICS['depth']}"
             expect_depth = self.config.use_depth and depth_topic in topics
             self.assemblers[camera] = CameraFrameAssembler(camera, expect_depth=expect_depth)
+            info_topic = f"/{camera}/color/camera_info"
+            self.create_subscription(
+                CameraInfo, info_topic,
+                guarded(self, info_topic, camera_info_from_msg, self._intrinsics_setter(camera)), qos)
             for kind, suffix in IMAGE_TOPICS.items():
                 if kind == "depth" and not expect_depth:
                     continue
                 topic = f"/{camera}/{suffix}"
                 self.create_subscription(
                     Image, topic, guarded(self, topic, self._image_converter(camera, kind),
-                                          self._on_frame), SENSOR_QOS)
-            info_topic = f"/{camera}/color/camera_info"
-            self.create_subscription(
-                CameraInfo, info_topic,
-                guarded(self, info_topic, camera_info_from_msg, self._intrinsics_setter(camera)),
-                SENSOR_QOS)
+                                          self._on_frame), qos)
         tolerance_ns = int(round(self.config.sync_tolerance * 1e9))
         self.matcher = FrameMatcher(sorted(self.assemblers), tolerance_ns, horizon_ns=None)
         self.reconstructor = None  # the rig changed: rebuilt at the next frame set
