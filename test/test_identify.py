@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 from dataclasses import fields, replace
@@ -15,6 +16,7 @@ from sim_scenes import DEVICE, scene
 
 from mosiv_ros.config import FitConfig, IdentifyConfig, LossConfig, from_mapping, updated
 from mosiv_ros.identify import losses
+from mosiv_ros.identify.checkpoint import SEARCH_FILE
 from mosiv_ros.identify.coordinates import Coordinate
 from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
@@ -553,6 +555,33 @@ def test_an_interrupted_fit_resumes_from_its_checkpoint_and_ends_where_an_uninte
     assert len(resumed_records) == len(reference.history) - 4  # only what was left
     assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
     assert len(resumed.history) == len(reference.history)
+
+
+@pytest.mark.slow
+def test_a_search_stopped_after_its_first_round_resumes_there_and_ends_where_an_uninterrupted_one_does(
+        tmp_path, caplog):
+    args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
+    options = {"search.samples": 6, "search.starts": 2, "search.rounds": 1, "curriculum.iterations": 1}
+    problem, settings = _jelly_problem(*args, frames=6, **options, checkpoint_dir=str(tmp_path / "ckpt"))
+    reference = Identifier(*_jelly_problem(*args, frames=6, **options)).run()
+
+    def stop_after_the_first_round(record):
+        if record["phase"] == "search" and record["done"] == 6:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        Identifier(problem, settings, progress=stop_after_the_first_round).run()
+    saved = json.loads((tmp_path / "ckpt" / SEARCH_FILE).read_text())
+    assert len(saved["rounds"]) == 1 and len(saved["rounds"][0]["kept"]) == 2  # the two starts
+    records: list[dict] = []
+    with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.search"):
+        resumed = Identifier(problem, settings, progress=records.append).run()
+    assert "1 rounds done" in caplog.text
+    searched = [r["done"] for r in records if r["phase"] == "search"]
+    assert searched == [6, 12, 18]  # the first round is not scored again
+    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
+    assert resumed.u == pytest.approx(reference.u, rel=max(SAME, 1e-5))
+    assert not (tmp_path / "ckpt" / SEARCH_FILE).exists()  # the fit's own checkpoint took over
 
 
 @pytest.mark.slow

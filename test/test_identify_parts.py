@@ -10,7 +10,7 @@ import pytest
 from test_identify import _cube_problem
 
 from mosiv_ros.config import updated
-from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE, Checkpoint, signature
+from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE, SEARCH_FILE, Checkpoint, signature
 from mosiv_ros.identify.curriculum import Adam, FitState, window_starts
 from mosiv_ros.identify.fit import Identifier
 from mosiv_ros.identify.search import SEARCH_RANGES
@@ -73,6 +73,28 @@ def test_a_checkpoint_reads_back_the_state_it_saved_and_only_for_its_own_fit(tmp
     assert Checkpoint(str(tmp_path / "none"), "fit-a").load() is None
     Checkpoint("", "fit-a").save(state)  # no directory: nothing kept
     assert Checkpoint("", "fit-a").load() is None
+
+
+def test_a_searchs_checkpoint_reads_back_its_rounds_only_for_its_own_fit_and_goes_with_the_first_state(
+        tmp_path, caplog):
+    rounds = [{"kept": [([0.1, -2.5], 3.2e-4), ([0.3, 1e-17], float("inf"))],
+               "sampler": np.random.default_rng(0).bit_generator.state}]
+    Checkpoint(str(tmp_path), "fit-a").save_search(rounds)
+    loaded = Checkpoint(str(tmp_path), "fit-a").load_search()
+    assert [[(list(u), value) for u, value in r["kept"]] for r in loaded] == \
+        [[(u, value) for u, value in r["kept"]] for r in rounds]  # floats to the bit, inf too
+    rng = np.random.default_rng()
+    rng.bit_generator.state = loaded[0]["sampler"]
+    assert rng.random() == np.random.default_rng(0).random()
+    with caplog.at_level(logging.WARNING):
+        assert Checkpoint(str(tmp_path), "fit-b").load_search() == []
+        (tmp_path / SEARCH_FILE).write_text((tmp_path / SEARCH_FILE).read_text()[:40])
+        assert Checkpoint(str(tmp_path), "fit-a").load_search() == []  # cut short: afresh
+    assert "belongs to another problem" in caplog.text and "cannot read the search's checkpoint" in caplog.text
+    Checkpoint(str(tmp_path), "fit-a").save(_state(np.random.default_rng(1)))
+    assert not (tmp_path / SEARCH_FILE).exists()
+    Checkpoint("", "fit-a").save_search(rounds)  # no directory: nothing kept
+    assert Checkpoint("", "fit-a").load_search() == []
 
 
 def test_a_fits_signature_changes_with_its_problem_and_result_settings_only():

@@ -4,7 +4,10 @@
 ``directory/CHECKPOINT_FILE`` (whole or not at all, ``io.files.replacing``), ``load()`` reads it
 back, or returns None where there is none, where it belongs to another fit (another
 ``signature``) or where it cannot be read (a partial or corrupt file: logged, the fit starts
-afresh). ``signature(...)`` names a fit: its problem and the settings its result depends on.
+afresh). Before the first state, ``save_search(rounds)`` keeps the search's finished rounds in
+``SEARCH_FILE`` (``search.GlobalSearch.run`` says what a round holds) and ``load_search()`` reads
+them back on the same terms; ``save`` removes that file, which its state replaces.
+``signature(...)`` names a fit: its problem and the settings its result depends on.
 
 What it is for: resuming a fit. What it is not for: the fit's results (``identify.estimates``).
 """
@@ -20,11 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.identify.curriculum import Adam, FitState
-from mosiv_ros.io.files import replacing
+from mosiv_ros.io.files import replacing, write_text
 
 _LOG = logging.getLogger(__name__)
 
 CHECKPOINT_FILE = "identify_checkpoint.npz"
+SEARCH_FILE = "search_checkpoint.json"
 
 
 def signature(problem, labels: list[str], settings: dict) -> str:
@@ -74,6 +78,31 @@ class Checkpoint:
                      best_u=best[1], best_velocity=best[2], best_per=best[3], m=adam.m, v=adam.v,
                      t=adam.t, lr=adam.lr, stage=state.stage, iteration=state.iteration,
                      failures=state.failures, history=json.dumps(state.history))
+        (Path(self.directory) / SEARCH_FILE).unlink(missing_ok=True)  # the state holds the search's end
+
+    def save_search(self, rounds: list[dict]) -> None:
+        """Write the search's finished ``rounds`` (JSON values) over the previous ones (none without a directory)."""
+        if not self.directory:
+            return
+        Path(self.directory).mkdir(parents=True, exist_ok=True)
+        write_text(Path(self.directory) / SEARCH_FILE,
+                   json.dumps({"signature": self.signature, "rounds": rounds}))
+
+    def load_search(self) -> list[dict]:
+        """The finished rounds of this fit's search, or [] (see the module docstring)."""
+        path = Path(self.directory) / SEARCH_FILE
+        if not self.directory or not path.is_file():
+            return []
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+            if data["signature"] != self.signature:
+                _LOG.warning("%s belongs to another problem or settings; searching afresh", path)
+                return []
+            return list(data["rounds"])
+        except (OSError, KeyError, TypeError, ValueError) as error:  # partial or corrupt
+            _LOG.warning("cannot read the search's checkpoint %s (%s: %s); searching afresh", path,
+                         type(error).__name__, error)
+            return []
 
     def load(self) -> FitState | None:
         """The saved state of this fit, or None (see the module docstring)."""

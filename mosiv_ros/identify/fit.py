@@ -459,7 +459,7 @@ class Identifier:
             state = FitState(u, velocity, adam, (u.copy(), velocity.copy()))
         else:
             tick = time.perf_counter()
-            u = self.search.run(velocity)
+            u = self.search.run(velocity, checkpoint)
             search_s = time.perf_counter() - tick
             state = FitState(u, velocity, adam, (u.copy(), velocity.copy()))
             checkpoint.save(state)  # stopped before its first iteration ends, it resumes here

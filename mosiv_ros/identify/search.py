@@ -1,6 +1,6 @@
 """The gradient-free search before Adam, and the batched losses it scores with (MOSIV stage 3).
 
-``GlobalSearch(identifier).run(velocity)`` returns the coordinates (u) of the best point found,
+``GlobalSearch(identifier).run(velocity, checkpoint)`` returns the coordinates (u) of the best point found,
 and leaves the identifier's simulator set to them. All its candidates are simulated in batched
 rollouts of the first ``search.frames`` frames (0 = all):
 
@@ -57,6 +57,7 @@ from mosiv_ros.sim.errors import SimulationDiverged
 from mosiv_ros.simulation import OFFSET
 
 if TYPE_CHECKING:
+    from mosiv_ros.identify.checkpoint import Checkpoint
     from mosiv_ros.identify.fit import Identifier
 
 _LOG = logging.getLogger(__name__)
@@ -323,8 +324,14 @@ class GlobalSearch:
         order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
         return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
 
-    def run(self, velocity: np.ndarray) -> np.ndarray:
-        """Latin-hypercube rounds in ever narrower boxes (module docstring); return u, applied."""
+    def run(self, velocity: np.ndarray, checkpoint: Checkpoint | None = None) -> np.ndarray:
+        """Latin-hypercube rounds in ever narrower boxes (module docstring); return u, applied.
+
+        With ``checkpoint``, each finished round is saved (the points it kept with their losses,
+        and the sampler's state after it), and the rounds a stopped run of the same fit finished
+        are taken from there instead of being scored again: the search ends where an
+        uninterrupted one does.
+        """
         fit = self.identifier
         s = fit.settings
         u = fit.pack()
@@ -334,9 +341,27 @@ class GlobalSearch:
                       for k in range(n_objects)]
         rng = np.random.default_rng(0)
         ranged = np.array([e.name in SEARCH_RANGES for e in fit.entries])
+        finished = checkpoint.load_search() if checkpoint is not None else []
+        if finished:
+            _LOG.info("resuming the search from %s: %d rounds done", checkpoint.directory, len(finished))
+        rounds_done: list[dict] = []
 
         def round_(centre: np.ndarray, number: int, keep: int,
                    loss: float | None = None) -> list[tuple[np.ndarray, float]]:
+            if len(rounds_done) < len(finished):  # finished before the stop
+                kept = finished[len(rounds_done)]
+                rng.bit_generator.state = kept["sampler"]
+                rounds_done.append(kept)
+                return [(np.array(u, dtype=np.float64), float(value)) for u, value in kept["kept"]]
+            found = sampled(centre, number, keep, loss)
+            rounds_done.append({"kept": [(u.tolist(), value) for u, value in found],
+                                "sampler": rng.bit_generator.state})
+            if checkpoint is not None:
+                checkpoint.save_search(rounds_done)
+            return found
+
+        def sampled(centre: np.ndarray, number: int, keep: int,
+                    loss: float | None) -> list[tuple[np.ndarray, float]]:
             half = 0.5 * (hi - lo) / 3.0**number
             box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
             box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
@@ -348,6 +373,8 @@ class GlobalSearch:
             return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep, loss)
 
         def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
+            if done < len(finished):  # a resumed search reports from where it stopped
+                return
             fit.report({"phase": "search", "done": done * s.search.samples,
                         "total": rounds * s.search.samples})
 
