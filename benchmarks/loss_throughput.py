@@ -105,7 +105,7 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
     # simulator's buffers, the observations' tensors
     timed(identifier, paths, window, lambda: {}, 2)
     timed(identifier, paths, search, lambda: {}, 1)
-    kept = bool(identifier.sim._kept)
+    kept = bool(identifier.sim.kept_tape_frames)
     result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
               "frames": n, "free": [e.label for e in identifier.entries], "rows": rows,
               "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
@@ -118,7 +118,7 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
             for memory in (None, 0.0):
                 identifier.sim.config.tape_memory = memory
                 timed(identifier, paths, window, lambda: {}, 2)
-                result["tapes"].append({"tape_memory": memory, "kept": bool(identifier.sim._kept),
+                result["tapes"].append({"tape_memory": memory, "kept": bool(identifier.sim.kept_tape_frames),
                                         **timed(identifier, paths, window, lambda: identifier.timing, repeats)})
         identifier.sim.config.tape_memory = None
     parts = ("window", "search") + (("tapes",) if tapes else ())

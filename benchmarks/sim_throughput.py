@@ -86,7 +86,7 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
     return {
         "particles": sim.n_particles, "objects": n_objects, "grid_nodes": sim.n_nodes * n_objects,
         "frames": frames, "substeps_per_frame": n_sub, "device": sim.device,
-        "tapes_kept": bool(sim._kept),
+        "tapes_kept": bool(sim.kept_tape_frames),
         "forward_s": forward, "forward_backward_s": both,
         "forward_particle_substeps_per_s": work / forward,
         "forward_backward_particle_substeps_per_s": work / both,

@@ -761,6 +761,15 @@ class Simulator:
             raise ParameterError("particle volumes must be finite and non-negative")
         self.volume.assign(np.ascontiguousarray(self._inward(volume)).ravel())
 
+    @property
+    def kept_tape_frames(self) -> int:
+        """Frames whose tapes the simulator holds from a ``grad=True`` rollout (``SimConfig.tape_memory``).
+
+        0 where the backward recomputes every frame (the CPU, or a window that did not fit);
+        blocks are kept for later rollouts of as many frames or fewer.
+        """
+        return len(self._kept)
+
     # --- time stepping --------------------------------------------------------------------
 
     def time_step(self, substeps: int | None = None) -> tuple[int, float]:
