@@ -16,6 +16,7 @@ A thin layer: each command calls the core or the process runner.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import logging
 import os
@@ -23,6 +24,7 @@ import subprocess
 import sys
 import threading
 import typing
+from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
@@ -398,13 +400,13 @@ def cmd_graph(args: argparse.Namespace) -> int:
     config = run_config(args.params_file)
     # The simulator's kernels build (on an empty kernel cache) while the nodes start and the bag
     # replays: identify_node, which needs them first, waits for the build and loads it from the
-    # cache (sim.runtime), and the report's twin needs them here later.
-    threading.Thread(target=_build_kernels, args=(config.identify.device,), name="kernels", daemon=True).start()
-    # The report's own reconstruction of the bag runs beside the graph at the lowest priority,
-    # on what the nodes leave of the cores (identification keeps one busy between its batched
-    # phases), and its twin rolls out beside prediction_node's.
+    # cache (sim.runtime), and the report's twin needs them here later. The report's own
+    # reconstruction of the bag runs beside the graph at the lowest priority, on what the nodes
+    # leave of the cores (identification keeps one busy between its batched phases), and its
+    # twin rolls out beside prediction_node's.
     try:
-        with ThreadPoolExecutor(1, initializer=_lowest_priority) as background, \
+        with _kernels_built_aside(config.identify.device), \
+                ThreadPoolExecutor(1, initializer=_lowest_priority) as background, \
                 Graph(graph_nodes(bag, float(args.rate), bag, overrides), params_file=args.params_file,
                       env=domain) as graph:
             prepared = background.submit(prepare, bag, config)
@@ -431,15 +433,33 @@ def cmd_graph(args: argparse.Namespace) -> int:
     return 0 if code == 0 and frame_sets else 1
 
 
-def _build_kernels(device: str) -> None:
-    """The simulator's kernels built and loaded on ``device`` (``cmd_graph``'s background thread)."""
+@contextlib.contextmanager
+def _kernels_built_aside(device: str) -> Iterator[None]:
+    """The simulator's kernels for ``device`` built and loaded while the block runs (``cmd_graph``).
+
+    A child process and a thread here build them: on an empty kernel cache each builds the
+    modules the other is not building (``sim.runtime``), so on two cores the build takes about
+    half as long. The child goes with the block.
+    """
     from mosiv_ros.sim.simulator import load_kernels
 
+    def build() -> None:
+        try:
+            load_kernels(device)
+        except Exception as error:  # noqa: BLE001 - identify_node meets the same error and reports it
+            LOG.warning("building the simulator's kernels ahead of the graph failed (identify_node "
+                        "will try again): %s", error)
+
+    child = subprocess.Popen([sys.executable, "-c", "from mosiv_ros.sim import runtime, simulator; "
+                              f"runtime.start(); simulator.load_kernels({device!r})"],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    threading.Thread(target=build, name="kernels", daemon=True).start()
     try:
-        load_kernels(device)
-    except Exception as error:  # noqa: BLE001 - identify_node meets the same error and reports it
-        LOG.warning("building the simulator's kernels ahead of the graph failed (identify_node "
-                    "will try again): %s", error)
+        yield
+    finally:
+        if child.poll() is None:  # stopped before the build ended
+            child.kill()
+        child.wait()
 
 
 def _did_not_finish(error: Exception) -> int:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import warp as wp
@@ -18,9 +20,11 @@ from mosiv_ros.sim import (
     ParameterError,
     ParamSpec,
     SimulationDiverged,
+    kernels,
 )
 from mosiv_ros.sim.effects import GridView
 from mosiv_ros.sim.params import REPLICAS, lane_count, lane_particle, param
+from mosiv_ros.sim.runtime import lock_file
 from mosiv_ros.sim.sampling import box, sphere
 
 
@@ -469,29 +473,43 @@ def test_the_parts_of_a_launch_run_every_particle_once_on_replicas_of_their_own(
     assert out.numpy().tolist() == list(range(total))  # one part: particle t, as before the parts
 
 
-def test_a_process_loading_kernels_waits_while_another_holds_the_kernel_cache(tmp_path):
-    # sim.runtime: one process builds a module into the cache while the others wait for its lock
-    # file, then load what it built (here this test holds the lock for 2 s)
+def test_a_process_loading_kernels_builds_the_free_modules_first_then_waits_for_the_one_another_holds(tmp_path):
+    # sim.runtime: a process that finds a module's lock file held (another process building it)
+    # builds the other modules meanwhile, then waits for that lock and loads what the other
+    # built (here this test holds the kernels module's lock until the others are ready)
     import fcntl
     import os
+    import queue
     import subprocess
     import sys
+    import threading
     import time
 
     cache = tmp_path / "kernels"
     cache.mkdir()
     env = dict(os.environ, WARP_CACHE_PATH=str(cache))
-    code = ("import logging, sys; logging.basicConfig(level=logging.INFO, stream=sys.stdout); "
-            "from mosiv_ros.sim.simulator import load_kernels; print('imported', flush=True); "
-            f"load_kernels({DEVICE!r})")
-    with open(cache / ".mosiv-build.lock", "a") as lock:
+    code = ("import logging, sys; logging.basicConfig(level=logging.DEBUG, stream=sys.stdout); "
+            f"from mosiv_ros.sim.simulator import load_kernels; load_kernels({DEVICE!r})")
+    others = ("mosiv_ros.sim.params", "mosiv_ros.sim.effects", "mosiv_ros.sim.simulator")
+    lines = []
+    with open(cache / Path(lock_file(kernels.__name__)).name, "a") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
-        child = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, text=True)
-        assert child.stdout.readline().strip() == "imported"
-        time.sleep(2.0)
-        assert child.poll() is None  # still waiting for the lock
-        fcntl.flock(lock, fcntl.LOCK_UN)
-    out, _ = child.communicate(timeout=600)
-    assert child.returncode == 0
+        child = subprocess.Popen([sys.executable, "-u", "-c", code], env=env, stdout=subprocess.PIPE, text=True)
+        printed: queue.Queue[str] = queue.Queue()
+        reader = threading.Thread(target=lambda: [printed.put(line) for line in child.stdout], daemon=True)
+        reader.start()
+        try:
+            while not all(any(f"kernels of {name} ready" in line for line in lines) for name in others):
+                lines.append(printed.get(timeout=300))  # Empty: it waited before building them
+            time.sleep(1.0)
+            assert child.poll() is None  # still waiting for the lock
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    assert child.wait(timeout=600) == 0
+    reader.join(timeout=60)
+    while not printed.empty():
+        lines.append(printed.get())
+    out = "".join(lines)
+    assert f"kernels of {kernels.__name__} ready" in out.split(f"kernels of {others[-1]} ready")[1]
     assert "waited" in out and "for another process building kernels into the cache" in out
     assert f"kernels ready on {DEVICE}" in out

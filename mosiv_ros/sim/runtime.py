@@ -14,10 +14,11 @@ Three things every simulation needs before its first launch, each done once per 
   simulator per CPU core, and on an empty cache their first launches built the same module at
   once, which crashed (an LLVM "IO failure on output stream", or "Referencing undefined
   symbol" errors from the code generator). Loaded up front, a launch only looks its module up.
-  Between processes (the nodes of a graph, the workers of a batch) a lock file in the kernel
-  cache does the same: one builds a module, the others wait and then load it from the cache,
-  instead of each building its own copy (Warp's per-process build directories made that safe,
-  but on two cores a second build doubled the wait).
+  Between processes (the nodes of a graph, the workers of a batch) a lock file per module in
+  the kernel cache does the same: one builds a module, the others wait and then load it from
+  the cache, instead of each building its own copy (Warp's per-process build directories made
+  that safe, but on two cores a second build doubled the wait). A process takes first a module
+  that no other is building: processes that start together build different modules at once.
 
 What it is not for: simulation itself (``simulator``) or choosing a torch device.
 """
@@ -131,24 +132,41 @@ def _note_once(device: str) -> None:
         _LOG.info("simulating on %s (%s)", device, wp.get_device(device).name)
 
 
-@contextlib.contextmanager
-def _cache_lock() -> Iterator[None]:
-    """Hold the kernel cache's lock file.
+def lock_file(name: str) -> str:
+    """The lock file in the kernel cache that a build of module ``name`` holds."""
+    return os.path.join(wp.config.kernel_cache_dir, f".mosiv-build.{name}.lock")
 
-    Where there is none to hold (not POSIX, a read-only cache, a file system without locks) only
-    the process-wide lock holds, as Warp's per-process build directories keep a build safe.
+
+@contextlib.contextmanager
+def _cache_lock(name: str, wait: bool = True) -> Iterator[bool]:
+    """Hold the kernel cache's lock file of module ``name`` (``lock_file``); yield whether held.
+
+    Without ``wait``, False (and nothing held) where another process holds it. Where there is no
+    lock to hold (not POSIX, a read-only cache, a file system without locks) only the
+    process-wide lock holds, as Warp's per-process build directories keep a build safe.
     """
     with contextlib.ExitStack() as held:
+        free = True
         try:
             import fcntl
 
             os.makedirs(wp.config.kernel_cache_dir, exist_ok=True)
-            handle = held.enter_context(open(os.path.join(wp.config.kernel_cache_dir, ".mosiv-build.lock"), "a"))
-            fcntl.flock(handle, fcntl.LOCK_EX)
-            held.callback(fcntl.flock, handle, fcntl.LOCK_UN)
+            handle = held.enter_context(open(lock_file(name), "a"))
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | (0 if wait else fcntl.LOCK_NB))
+                held.callback(fcntl.flock, handle, fcntl.LOCK_UN)
+            except BlockingIOError:
+                free = False
         except (ImportError, OSError) as error:
             _LOG.debug("kernel cache not locked between processes: %s", error)
-        yield
+        yield free
+
+
+def _build(module: wp.context.Module, device: str) -> None:
+    """Build (or load from the cache) and load ``module``'s kernels on ``device``."""
+    if module.load(wp.get_device(device)) is None:
+        raise RuntimeError(f"Warp could not build the kernels of {module.name} on {device}")
+    _LOG.debug("kernels of %s ready on %s", module.name, device)
 
 
 def load_modules(device: str, modules: Iterable[types.ModuleType | str]) -> None:
@@ -158,18 +176,27 @@ def load_modules(device: str, modules: Iterable[types.ModuleType | str]) -> None
         new = [name for name in names if (device, name) not in _loaded]
         if not new:
             return
-        asked = time.perf_counter()
-        with _cache_lock():
-            began = time.perf_counter()
-            if began - asked > 0.5:
-                _LOG.info("waited %.1f s for another process building kernels into the cache",
-                          began - asked)
-            _LOG.info("loading the simulator's kernels on %s (compiled into the kernel cache %s "
-                      "when not there yet)", device, wp.config.kernel_cache_dir)
-            for name in new:
-                module = wp.context.user_modules.get(name)
-                if module is not None and module.kernels:  # a module of functions only is built into its users
-                    if module.load(wp.get_device(device)) is None:
-                        raise RuntimeError(f"Warp could not build the kernels of {name} on {device}")
-                _loaded.add((device, name))
-            _LOG.info("kernels ready on %s in %.1f s", device, time.perf_counter() - began)
+        _LOG.info("loading the simulator's kernels on %s (compiled into the kernel cache %s "
+                  "when not there yet)", device, wp.config.kernel_cache_dir)
+        began, waited = time.perf_counter(), 0.0
+        # a module of functions only is built into its users
+        pending = [module for module in map(wp.context.user_modules.get, new) if module is not None and module.kernels]
+        while pending:
+            # first a module that no other process is building: processes that need the same
+            # modules build different ones at once, then load the others' builds from the cache
+            for module in pending:
+                with _cache_lock(module.name, wait=False) as free:
+                    if free:
+                        _build(module, device)
+                        break
+            else:
+                module = pending[0]
+                asked = time.perf_counter()
+                with _cache_lock(module.name):
+                    waited += time.perf_counter() - asked
+                    _build(module, device)
+            pending.remove(module)
+        _loaded.update((device, name) for name in new)
+        if waited > 0.5:
+            _LOG.info("waited %.1f s for another process building kernels into the cache", waited)
+        _LOG.info("kernels ready on %s in %.1f s", device, time.perf_counter() - began)
