@@ -62,6 +62,8 @@ def sensor_qos(depth: int) -> QoSProfile:
     """
     return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=SENSOR_QOS.reliability,
                       durability=SENSOR_QOS.durability)
+
+
 #: Per-frame pipeline streams: every frame matters to the next stage, also to a stage that
 #: starts late (identify_node needs the whole window): reliable, and transient_local with the
 #: last STREAM_HISTORY messages (30 s at 30 fps) kept for late subscribers.
