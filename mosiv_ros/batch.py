@@ -259,10 +259,7 @@ def run_batch(paths: Iterable[str | Path], out: str | Path, config: RunConfig,
     directory = OutputDir(out, f"mosiv batch {' '.join(map(str, paths))}")  # before any work
     loop = (loop or LoopConfig(holdout=config.holdout)) if batch.close_loop else None
     entries: dict[str, dict] = {}
-    for item in items:
-        summary = directory.path / item.name / SUMMARY
-        if summary.is_file():
-            entries[item.name] = json.loads(summary.read_text(encoding="utf-8"))
+    _add_written(directory, items, entries)
     skipped = len(entries)
     waiting = [item for item in items if item.name not in entries]
     started = not ray.is_initialized() and not batch.address
@@ -308,10 +305,7 @@ def run_batch(paths: Iterable[str | Path], out: str | Path, config: RunConfig,
         for ref in running:
             ray.cancel(ref, force=True)
         # a recording that wrote its summary as Ctrl-C came is done, though its result never arrived
-        for item in items:
-            summary = directory.path / item.name / SUMMARY
-            if item.name not in entries and summary.is_file():
-                entries[item.name] = json.loads(summary.read_text(encoding="utf-8"))
+        _add_written(directory, items, entries)
         _LOG.warning("interrupted: %d running recordings cancelled; the finished ones are kept",
                      sum(item.name not in entries for item in running.values()))
     finally:
@@ -319,6 +313,14 @@ def run_batch(paths: Iterable[str | Path], out: str | Path, config: RunConfig,
             ray.shutdown()
     ordered = [entries[item.name] for item in items if item.name in entries]
     return write_suite_report(directory, ordered, len(items), interrupted)
+
+
+def _add_written(directory: OutputDir, items: list[Item], entries: dict[str, dict]) -> None:
+    """Add to ``entries`` each recording of ``items`` not in it whose ``summary.json`` is written."""
+    for item in items:
+        summary = directory.path / item.name / SUMMARY
+        if item.name not in entries and summary.is_file():
+            entries[item.name] = json.loads(summary.read_text(encoding="utf-8"))
 
 
 def failures(entries: dict[str, dict]) -> int:

@@ -689,14 +689,13 @@ class Simulator:
             count=len(colliders), shape=wp.array(shapes, dtype=int, device=d),
             size=wp.array(np.array(sizes, dtype=np.float32), dtype=wp.vec3, device=d),
             friction=wp.array([c.friction for c in colliders] or [0.0], dtype=float, device=d))
-        self._collider_rows = 0
 
     def _collider_poses(self, frame: int, n_sub: int, dt: float) -> None:
         """Fill the collider pose arrays of the rollouts for one frame (``_pose_colliders``)."""
         rows = n_sub * len(self.config.colliders) or 1
-        if rows > self._collider_rows:  # room for more, as the tape buffers have (their docstring)
+        held = self._colliders.pos.shape[0] if self._colliders.pos is not None else 0
+        if rows > held:  # room for more, as the tape buffers have (their docstring)
             self._colliders = self._collider_arrays(self._capacity(n_sub))
-            self._collider_rows = self._colliders.pos.shape[0]
             self._forget_graphs("frame")
         self._pose_colliders(self._colliders, frame, n_sub, dt)
 
