@@ -902,23 +902,25 @@ class Simulator:
             self._substep(states[current], states[1 - current], grid, s, dt)
             current = 1 - current
 
-    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> _FrameTape:
-        """Compute one frame from ``frame.states[0]`` on a tape, its gradients cleared first.
+    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> None:
+        """Compute one frame from ``frame.states[0]`` on a tape.
 
-        The gradients are cleared before the recomputation moves the grids' boxes
-        (``_Grid.zero_grad`` clears the box of the substep that last ran on a grid, where the
-        adjoint of that substep wrote; on a GPU the box is the grid, and one memset clears all).
+        Its gradients are not cleared here: a backward that recomputes the frame clears them
+        first (``_zero_frame_grad``), a kept frame's adjoint just before it runs.
         """
-        self._zero_frame_grad(frame)
         tape = frame.tapes[n_sub] = wp.Tape()
         with tape:
             self._replicate()
             for s in range(n_sub):
                 self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders)
-        return frame
 
     def _zero_frame_grad(self, frame: _FrameTape) -> None:
-        """Clear the gradients of ``frame``'s states and grids (``_record_frame`` says how)."""
+        """Clear the gradients of ``frame``'s states and grids.
+
+        Before a recomputation moves the grids' boxes: ``_Grid.zero_grad`` clears the box of the
+        substep that last ran on a grid, where the adjoint of that substep wrote; on a GPU the
+        box is the grid, and one memset clears all.
+        """
         if self.device != "cpu":
             frame.grads.zero_()
             return
@@ -1146,9 +1148,9 @@ class Simulator:
         kept = self._kept_frames(n_frames, n_sub) if grad else None
         checkpoints = [] if kept or not grad else [_clone(states[0])]
         state, current = states[0], 0
+        work = self._tape_buffers_for(n_sub)[0] if kept else None
         for frame in range(n_frames):
             if kept:  # recorded on a tape, whose states and grids are kept for ``backward``
-                work = self._tape_buffers_for(n_sub)[0]
                 self._pose_colliders(work.colliders, start_frame + frame, n_sub, dt)
                 self._launch(("kept", n_sub, dt, frame == 0), partial(
                     self._record_kept, work, states[0] if frame == 0 else work.states[n_sub], n_sub, dt))
@@ -1231,11 +1233,12 @@ class Simulator:
             for index in reversed(range(n_frames)):
                 prepare(index)
                 seeded(index)
-                self._launch(("backward", n_sub, dt), lambda: self._frame_adjoint(
-                    self._record_frame(frame, n_sub, dt), n_sub, adjoint, seed))
+                self._launch(("backward", n_sub, dt), partial(self._recomputed_adjoint, frame, n_sub, dt,
+                                                              adjoint, seed))
         else:  # the CPU: a second thread recomputes the frame before while this one's adjoint runs
             def recorded(index: int) -> _FrameTape:
                 frame = prepare(index)
+                self._zero_frame_grad(frame)
                 self._record_frame(frame, n_sub, dt)
                 return frame
 
@@ -1334,6 +1337,13 @@ class Simulator:
         """Record a frame of a rollout from ``start`` on ``frame`` (``_kept_frames`` says why)."""
         frame.states[0].copy_from(start)
         self._record_frame(frame, n_sub, dt)
+
+    def _recomputed_adjoint(self, frame: _FrameTape, n_sub: int, dt: float, adjoint: _State,
+                            seed: wp.array) -> None:
+        """A frame recomputed from ``frame.states[0]`` on a tape, then its adjoint (a GPU's backward)."""
+        self._zero_frame_grad(frame)
+        self._record_frame(frame, n_sub, dt)
+        self._frame_adjoint(frame, n_sub, adjoint, seed)
 
     def _kept_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array) -> None:
         """The adjoint of a frame whose values ``backward`` put back on ``frame``."""
