@@ -73,8 +73,14 @@ def field_node(t: int, box_lo: wp.vec3i, box_dims: wp.vec3i, dims: wp.vec3i):
     """Field-node index of thread ``t`` of a launch over a box of nodes in every field.
 
     The launch has one thread per node of the box (``box_dims`` nodes from ``box_lo``) in each
-    (batch, object) field, field-major; the whole grid is the box (0, 0, 0) + ``dims``.
+    (batch, object) field, field-major; the whole grid is the box (0, 0, 0) + ``dims``, where
+    the thread's index is the node's, found without integer divisions (on a GPU these took a
+    fifth of ``grid_update``'s time and a third of ``contact_totals``' over the mostly empty
+    grids of a search batch).
     """
+    if box_lo[0] == 0 and box_lo[1] == 0 and box_lo[2] == 0 and box_dims[0] == dims[0] and (
+            box_dims[1] == dims[1] and box_dims[2] == dims[2]):
+        return t
     n_box = box_dims[0] * box_dims[1] * box_dims[2]
     r = t % n_box
     return (t // n_box) * dims[0] * dims[1] * dims[2] + node_index(
