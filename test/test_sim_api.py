@@ -144,6 +144,31 @@ def test_batched_rollout_equals_one_rollout_per_parameter_set():
         assert np.abs(together[:, b] - sim.rollout(5, substeps=substeps)[:, 0]).max() < 1e-6
 
 
+def test_rows_at_their_own_time_steps_move_as_each_alone_at_its_own():
+    """``rollout(own_steps=True)``: a soft row waits out the stiff rows' extra substeps unchanged."""
+    values = [(3e4, 5e4), (4e5, 5e4), (1e4, 2e5)]
+    alone = [_two_balls() for _ in values]
+    for sim, (ball, block) in zip(alone, values, strict=True):
+        sim.params.set("E", [[ball, block]])
+    together = _two_balls(n_batch=3)
+    together.params.set("E", [list(v) for v in values])
+    substeps, _ = together.own_time_steps()
+    assert substeps.tolist() == [sim.time_step()[0] for sim in alone]
+    assert len(set(substeps.tolist())) == 3
+    moved = together.rollout(4, own_steps=True)
+    for b, sim in enumerate(alone):
+        assert _equal(moved[:, b], sim.rollout(4)[:, 0]), b
+    # at the stiffest row's step the soft rows move otherwise (what own steps are for)
+    assert not np.allclose(together.rollout(4)[:, 0], moved[:, 0], rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="own_steps=True takes neither grad nor substeps"):
+        together.rollout(2, own_steps=True, grad=True)
+    finger = Collider("sphere", (0.03,), np.array([0.0, 1.0]), np.array([[0.45, 0.2, 0.3]] * 2))
+    gripped = _two_balls(n_batch=2, colliders=[finger])
+    assert not gripped.own_steps_allowed
+    with pytest.raises(ParameterError, match="own time steps need a scene without colliders"):
+        gripped.rollout(2, own_steps=True)
+
+
 def test_batched_gradients_equal_one_backward_per_parameter_set():
     target = falling_ball("elastic", {"E": 6e4}).rollout(4)[:, 0].astype(np.float64)
     single = falling_ball("elastic", {"E": 3e4})
@@ -336,16 +361,16 @@ def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named
     src, dst = _State(n, sim.device, False), _State(n, sim.device, False)
     grid = _Grid(1, 1, sim.dims, n, False, sim.device, False)
     args = dict(zip([a.label for a in kernels.g2p.adj.args],
-                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3},
+                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0},
                           sim._scene), strict=True))
     assert args["src_x"] is src.x and args["dst_x"] is dst.x and args["dst_C"] is dst.C
     assert args["grid_v"] is grid.v and args["ground_height"] is sim.params["ground.height"]
     assert args["dt"] == 1e-3 and args["n_particles"] == n and args["has_ground"] == 1
     with pytest.raises(TypeError, match=r"kernel g2p: no value for its parameter 'dst_x'"):
-        _bind(kernels.g2p, {"src": src, "grid": grid, "dt": 1e-3}, sim._scene)
-    with pytest.raises(TypeError, match=r"kernel g2p takes nothing from substep"):
-        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0},
-              sim._scene)
+        _bind(kernels.g2p, {"src": src, "grid": grid, "dt": 1e-3, "substep": 0}, sim._scene)
+    with pytest.raises(TypeError, match=r"kernel g2p takes nothing from collider"):
+        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0,
+                            "collider": sim._colliders}, sim._scene)
 
 
 def _two_balls(n_batch=1, effects=None, **config):

@@ -97,9 +97,16 @@ class GlobalSearch:
         ``together`` (default: on a GPU): every row at the time step of the stiffest row, in one
         batched rollout; else each row at its own stable time step (on the CPU a batch costs as
         much as its rows, and the loss of one parameter set differs by up to 10 % between time
-        steps). On the CPU the rows, or slices of them when together, are simulated side by side,
-        one simulator per core (``FitSettings.cpu_workers``). Over frames 1..``frames`` (default
-        all); NaN where a rollout diverged (every row of its batch or slice).
+        steps), on a GPU in one batched rollout whose rows take their own steps
+        (``Simulator.rollout(own_steps=True)``; one row after another in a scene with colliders or
+        with stress or grid-force effects). On the CPU the rows, or slices of them when together,
+        are simulated side by side, one simulator per core (``FitSettings.cpu_workers``). Over
+        frames 1..``frames`` (default all); NaN where a rollout diverged (every row of its batch or
+        slice).
+
+        The GPU's default keeps the stiffest row's step: scored at their own steps, the search's
+        rows of elastic_on_plastic led it to another basin (benchmarks/RESULTS.md, "Search rows at
+        their own time steps").
         """
         return self.batch_object_losses(candidates, velocity, frames, together)[0]
 
@@ -116,8 +123,8 @@ class GlobalSearch:
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
         cuda = fit.sim.device.startswith("cuda")
-        if together is None:
-            together = cuda or substeps is not None
+        own = cuda and together is False and substeps is None and fit.sim.own_steps_allowed
+        together = own or (cuda or substeps is not None if together is None else together)
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
             obs.tensors(fit.tensor_device)
@@ -127,12 +134,12 @@ class GlobalSearch:
         # On the CPU each simulator runs on one core and its kernels release the GIL, so rows (or
         # slices of a batch) run side by side on every core, with the same results as in turn.
         workers = 1 if cuda else max(1, min(len(candidates), fit.settings.cpu_workers or os.cpu_count() or 1))
-        if together:  # one time step, the stiffest row's, for every row
+        if together:  # one batch: the stiffest row's time step for every row, or each row's own
             groups = [candidates] if cuda else np.array_split(candidates, workers)
             sims = [self.simulator(len(g), slot) for slot, g in enumerate(groups)]
             insides = [self.configure(sim, g) for sim, g in zip(sims, groups, strict=True)]
-            substeps = substeps or max(sim.time_step()[0] for sim in sims)
-            jobs = [partial(self._score, sim, inside, frames, substeps)
+            substeps = None if own else substeps or max(sim.time_step()[0] for sim in sims)
+            jobs = [partial(self._score, sim, inside, frames, substeps, own)
                     for sim, inside in zip(sims, insides, strict=True)]
         else:  # each row at its own time step, on the simulator of a free slot
             idle = queue.SimpleQueue()
@@ -202,17 +209,18 @@ class GlobalSearch:
         batch.set_volume(np.stack([boundary.volumes(o[fit.index]) for o in offsets]))
         return np.stack([boundary.inside(o[fit.index]) for o in offsets])
 
-    def _score(self, batch: Simulator, inside: np.ndarray, frames: int,
-               substeps: int | None = None) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
+    def _score(self, batch: Simulator, inside: np.ndarray, frames: int, substeps: int | None = None,
+               own: bool = False) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
         """Roll the configured ``batch`` out over ``frames`` frames and score each row.
 
-        Returns the rows' losses, their per-object shares and (rollout, scoring) seconds.
+        ``own``: each row at its own time step. Returns the rows' losses, their per-object shares
+        and (rollout, scoring) seconds.
         """
         obs = self.identifier.problem.observations
         n = batch.n_batch
         tick = time.perf_counter()
         try:
-            traj = batch.rollout(frames, substeps=substeps)
+            traj = batch.rollout(frames, substeps=substeps, own_steps=own)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)

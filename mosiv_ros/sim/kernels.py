@@ -109,6 +109,24 @@ def bspline_weights(fx: float):
     )
 
 
+@wp.func
+def own_step(own_dt: wp.array(dtype=float), batch: int, dt: float):
+    """The substep of batch row ``batch``: its own (``own_dt``, rows at their own time steps) or ``dt``."""
+    step = dt
+    if own_dt.shape[0] > 0:
+        step = own_dt[batch]
+    return step
+
+
+@wp.func
+def own_turn(own_substeps: wp.array(dtype=int), batch: int, substep: int):
+    """Whether row ``batch`` takes substep ``substep`` of the frame (every row does, without own steps)."""
+    taken = True
+    if own_substeps.shape[0] > 0:
+        taken = substep < own_substeps[batch]
+    return taken
+
+
 @wp.kernel
 def p2g(
     src_x: wp.array(dtype=wp.vec3),
@@ -135,6 +153,9 @@ def p2g(
     lo: wp.vec3,
     dx: float,
     dt: float,
+    own_dt: wp.array(dtype=float),
+    own_substeps: wp.array(dtype=int),
+    substep: int,
     dst_b: wp.array(dtype=wp.mat33),
     grid_m: wp.array(dtype=float),
     grid_p: wp.array(dtype=wp.vec3),
@@ -147,14 +168,18 @@ def p2g(
     """
     i = lane_particle(wp.tid(), part, parts)
     batch = i // n_particles
+    if not own_turn(own_substeps, batch, substep):  # a row whose frame is done: its state stays
+        dst_b[i] = src_b[i]
+        return
+    h = own_step(own_dt, batch, dt)
     k = obj[i - batch * n_particles]
     q = batch * n_objects + k
     fam = family[k]
     # each particle array is read once: every read is an atomic add of its adjoint
     x_i = src_x[i]
     C_i = src_C[i]
-    # b <- f b f^T with f = I + dt C (Hu et al. 2018, Eq. 17 applied to b = F F^T)
-    f = wp.identity(n=3, dtype=float) + C_i * dt
+    # b <- f b f^T with f = I + h C (Hu et al. 2018, Eq. 17 applied to b = F F^T; h the row's dt)
+    f = wp.identity(n=3, dtype=float) + C_i * h
     b_trial = f * src_b[i] * wp.transpose(f)
     E_q = param(E, q, i)
     nu_q = param(nu, q, i)
@@ -169,7 +194,7 @@ def p2g(
     vol = volume[i]
     mass = param(density, q, i) * vol
     # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
-    affine = tau * (-dt * vol * 4.0 * inv_dx * inv_dx) + C_i * mass
+    affine = tau * (-h * vol * 4.0 * inv_dx * inv_dx) + C_i * mass
     base = stencil_base(x_i, lo, inv_dx, dims)
     fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx[0])
@@ -346,6 +371,7 @@ def contact_totals(
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
     dt: float,
+    own_dt: wp.array(dtype=float),
     grid_present_m: wp.array(dtype=float),
     grid_present_p: wp.array(dtype=wp.vec3),
     grid_present_mu: wp.array(dtype=float),
@@ -366,7 +392,8 @@ def contact_totals(
     node = batch * n_nodes + i % n_nodes
     if m > node_total(grid_m, batch * n_objects * n_nodes + i % n_nodes, n_nodes, n_objects) * CONTACT_MASS_FRACTION:
         wp.atomic_add(grid_present_m, node, m)
-        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, uniform, batch, i, dt) * m)
+        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, uniform, batch, i,
+                                                           own_step(own_dt, batch, dt)) * m)
         wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
 
 
@@ -403,6 +430,7 @@ def grid_update(
     lo: wp.vec3,
     dx: float,
     dt: float,
+    own_dt: wp.array(dtype=float),
     grid_v: wp.array(dtype=wp.vec3),
 ):
     """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
@@ -421,7 +449,7 @@ def grid_update(
     j = (node // dims[2]) % dims[1]
     l = node % dims[2]
     x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
-    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, dt)
+    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_step(own_dt, batch, dt))
 
     if n_objects > 1:
         at = batch * n_nodes + node
@@ -480,6 +508,8 @@ def grid_update(
 @wp.kernel
 def g2p(
     src_x: wp.array(dtype=wp.vec3),
+    src_v: wp.array(dtype=wp.vec3),
+    src_C: wp.array(dtype=wp.mat33),
     grid_v: wp.array(dtype=wp.vec3),
     obj: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
@@ -492,16 +522,25 @@ def g2p(
     lo: wp.vec3,
     dx: float,
     dt: float,
+    own_dt: wp.array(dtype=float),
+    own_substeps: wp.array(dtype=int),
+    substep: int,
     dst_x: wp.array(dtype=wp.vec3),
     dst_v: wp.array(dtype=wp.vec3),
     dst_C: wp.array(dtype=wp.mat33),
 ):
     """Gather velocity and affine field from the particle's own object field and advect.
 
-    The particle is also kept on or above the ground plane.
+    The particle is also kept on or above the ground plane. A row whose frame is done (rows at
+    their own time steps) keeps its state.
     """
     i = wp.tid()
     batch = i // n_particles
+    if not own_turn(own_substeps, batch, substep):
+        dst_x[i] = src_x[i]
+        dst_v[i] = src_v[i]
+        dst_C[i] = src_C[i]
+        return
     k = obj[i - batch * n_particles]
     inv_dx = 1.0 / dx
     x_i = src_x[i]  # read once: every read is an atomic add of its adjoint
@@ -524,7 +563,7 @@ def g2p(
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
-    x_new = x_i + new_v * dt
+    x_new = x_i + new_v * own_step(own_dt, batch, dt)
     if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
         # a substep below the plane is put back onto it and loses its velocity into it, so

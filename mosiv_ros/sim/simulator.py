@@ -561,6 +561,8 @@ class Simulator:
             "family": self.family, "normal_rank": self.normal_rank,
             "ranked_object": self.ranked_object, "has_ground": int(config.ground is not None),
             "uniform": self._uniform_sums[-1] if self._uniform_sums else self._uniform_parts[0],
+            # no row takes its own time step (``rollout(own_steps=True)`` gives these)
+            "own_dt": wp.empty(0, dtype=float, device=d), "own_substeps": wp.empty(0, dtype=int, device=d),
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
         self._stress = any(e.has_stress for e in self.effects)
@@ -577,6 +579,9 @@ class Simulator:
         self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
         self._adjoint_commands: dict[tuple, tuple[wp.Kernel, object, list, list]] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
+        # each row's dt and substeps per frame where rows take their own steps (``rollout``)
+        self._own_steps = (wp.zeros(self.n_batch, dtype=float, device=d),
+                           wp.zeros(self.n_batch, dtype=int, device=d))
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -777,21 +782,34 @@ class Simulator:
         ``substeps`` forces a count (e.g. to compare rollouts at fixed discretisation, as a
         finite-difference check must); it is refused when below the stability bound.
         """
+        return self._time_step(slice(None), substeps)
+
+    def own_time_steps(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each batch row's own (substeps per frame, dt), as a simulator of that row alone has them.
+
+        ``rollout(own_steps=True)`` steps each row so.
+        """
+        steps = [self._time_step(slice(b, b + 1)) for b in range(self.n_batch)]
+        return np.array([n for n, _ in steps]), np.array([dt for _, dt in steps])
+
+    def _time_step(self, rows: slice, substeps: int | None = None) -> tuple[int, float]:
+        """``time_step`` of the batch rows ``rows``."""
         speeds = [0.0]
         for k, o in enumerate(self.objects):
-            values = {s.name: self.params.get(s.name)[:, k] for s in MATERIAL_PARAMS}
+            values = {s.name: self.params.get(s.name)[rows, k] for s in MATERIAL_PARAMS}
             speeds.append(float(np.max(wave_speed(o.family, values))))
-        v0_max = float(np.max(np.linalg.norm(self.v0.numpy(), axis=1), initial=0.0))
+        v0 = self.v0.numpy().reshape(self.n_batch, self.n_particles, 3)[rows]
+        v0_max = float(np.max(np.linalg.norm(v0, axis=2), initial=0.0))
         dt = self.config.cfl * self.dx / (max(speeds) + self.config.max_speed + v0_max)
         # Explicit viscosity: nu dt / dx^2 <= 1 / (2 d), d = 3
-        rho = self.params.get("density")
+        rho = self.params.get("density")[rows]
         for k, o in enumerate(self.objects):
             if o.family == "fluid":
-                eta = self.params.get("viscosity")[:, k]
+                eta = self.params.get("viscosity")[rows, k]
                 if np.any(eta > 0):
                     dt = min(dt, float(np.min(rho[:, k] * self.dx**2 / (6.0 * np.maximum(eta, 1e-30)))))
         for effect in self.effects:
-            values = {s.name: self.params.get(f"{effect.name}.{s.name}") for s in effect.params}
+            values = {s.name: self.params.get(f"{effect.name}.{s.name}")[rows] for s in effect.params}
             dt = min(dt, effect.time_step_limit(values, self.dx, float(np.min(rho))))
         n_sub = math.ceil(self.config.frame_dt / dt - 1e-9)
         if substeps is not None:
@@ -843,12 +861,15 @@ class Simulator:
             tape.record_launch(kernel, dim, 0, args, [], self.device)
 
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float,
-                 colliders: _Colliders | None = None) -> None:
+                 colliders: _Colliders | None = None, own: bool = False) -> None:
         """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
 
         ``row`` is the substep's index in its frame (which of the poses of ``colliders``, by
-        default the rollouts', apply).
+        default the rollouts', apply). ``own``: each batch row at its own time step
+        (``rollout``), ``dt`` unused.
         """
+        steps = {"own_dt": self._own_steps[0], "own_substeps": self._own_steps[1]} if own else {}
+        own_dt = {"own_dt": self._own_steps[0]} if own else {}
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
         grid.zero((box_lo, box_dims))
@@ -857,7 +878,7 @@ class Simulator:
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        self._run(kernels.p2g, B * N, src=src, dst=dst, grid=grid, dt=dt)
+        self._run(kernels.p2g, B * N, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d, box_lo,
                         box_dims)
         for effect in self.effects:
@@ -866,10 +887,10 @@ class Simulator:
         n_box = view.n_box
         box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
         if K > 1:
-            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **own_dt)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
-                  **box, dt=dt)
-        self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt)
+                  **box, dt=dt, **own_dt)
+        self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
@@ -895,11 +916,11 @@ class Simulator:
         return tuple(int(v) for v in box_lo), tuple(int(v) for v in box_hi - box_lo + 1)
 
     def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
-               dt: float) -> None:
+               dt: float, own: bool = False) -> None:
         """One frame's substeps from ``states[current]``, ping-ponging between the two states."""
         self._replicate()
         for s in range(n_sub):
-            self._substep(states[current], states[1 - current], grid, s, dt)
+            self._substep(states[current], states[1 - current], grid, s, dt, own=own)
             current = 1 - current
 
     def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> None:
@@ -1047,11 +1068,12 @@ class Simulator:
         """Launch the state check of one frame into ``stats`` (B * K * 4, see ``_diverged``)."""
         self._run(kernels.check_state, self.n_batch * self.n_particles, state=state, stats=stats)
 
-    def _diverged(self, stats: np.ndarray, frame: int, dt: float) -> None:
-        """Raise ``SimulationDiverged`` if a frame's check statistics say so."""
+    def _diverged(self, stats: np.ndarray, frame: int, dt: float | np.ndarray) -> None:
+        """Raise ``SimulationDiverged`` if a frame's check statistics say so (``dt``: each row's, or all rows')."""
         stats = stats.reshape(self.n_batch, self.n_objects, 4)
-        limit = self.dx / dt
         for b in range(self.n_batch):
+            row_dt = float(np.broadcast_to(dt, (self.n_batch,))[b])
+            limit = self.dx / row_dt
             for k, o in enumerate(self.objects):
                 speed, bad, outside, det = stats[b, k]
                 reason = None
@@ -1069,7 +1091,7 @@ class Simulator:
                                        for n in ("E", "nu", "density") if o.family != "fluid")
                     raise SimulationDiverged(frame, o.name, b,
                                              f"{reason} ({o.family}{'; ' + values if values else ''};"
-                                             f" dt={dt:.3g} s, dx={self.dx:g} m)")
+                                             f" dt={row_dt:.3g} s, dx={self.dx:g} m)")
 
     # --- rollouts and gradients ------------------------------------------------------------
 
@@ -1111,9 +1133,18 @@ class Simulator:
                       for a in state.arrays)
         return SimState(x, v, C, b)
 
+    @property
+    def own_steps_allowed(self) -> bool:
+        """Whether ``rollout(own_steps=True)`` may step each batch row at its own time step.
+
+        Not with colliders (their poses are the frame's, one per substep of one time step) or
+        with effects that add stresses or grid accelerations (their kernels take one dt).
+        """
+        return not self.config.colliders and not any(e.has_stress or e.has_accelerate for e in self.effects)
+
     def rollout(self, n_frames: int, *, grad: bool = False, check: bool = True,
                 substeps: int | None = None, initial: SimState | None = None,
-                start_frame: int = 0, progress=None) -> np.ndarray:
+                start_frame: int = 0, progress=None, own_steps: bool = False) -> np.ndarray:
         """Advance ``n_frames`` frames; positions (n_frames + 1, B, N, 3), frame 0 the start.
 
         ``grad=True`` keeps per-frame checkpoints for ``backward``. ``substeps`` forces the
@@ -1122,9 +1153,27 @@ class Simulator:
         by default the rollout starts at rest deformation from the particles and ``v0``.
         ``start_frame`` is the frame the rollout starts at on the scene's clock (colliders move
         along their trajectories from there). ``progress(frame)`` is called after each frame.
+
+        ``own_steps=True`` steps each batch row at its own time step (``own_time_steps``) instead
+        of every row at the stiffest one's: a row's frame is its own substeps, after which it
+        waits for the others (its kernels copy its state). Each row moves as a simulator of it
+        alone would (on the CPU to the bit), in the time the stiffest row takes, with the work of
+        the rows that are still stepping. Not with ``grad`` or ``substeps``, and only where
+        ``own_steps_allowed``.
         """
         self.params.validate()
-        n_sub, dt = self.time_step(substeps)
+        if own_steps:
+            if grad or substeps is not None:
+                raise ValueError("own_steps=True takes neither grad nor substeps")
+            if not self.own_steps_allowed:
+                raise ParameterError("rows at their own time steps need a scene without colliders and "
+                                     "without effects that add stresses or grid accelerations")
+            row_substeps, row_dt = self.own_time_steps()
+            self._own_steps[0].assign(row_dt.astype(np.float32))
+            self._own_steps[1].assign(row_substeps.astype(np.int32))
+            n_sub, dt = int(row_substeps.max()), row_dt
+        else:
+            n_sub, dt = self.time_step(substeps)
         B, N = self.n_batch, self.n_particles
         self._record = None  # a rollout that stops diverging leaves none (kept frames are rewritten)
         if self._buffers is None:
@@ -1158,6 +1207,9 @@ class Simulator:
                 start, state = self._kept_states(kept[frame], work, n_sub)
                 if frame == 0:
                     checkpoints.append(start)
+            elif own_steps:  # each row's own dt and substeps are read from the device
+                self._launch(("own", n_sub, current), partial(self._frame, states, current, grid, n_sub, 0.0, True))
+                current = (current + n_sub) % 2
             else:
                 self._collider_poses(start_frame + frame, n_sub, dt)
                 self._launch(("frame", n_sub, dt, current),
@@ -1182,7 +1234,7 @@ class Simulator:
                          "start_frame": start_frame, "kept": kept} if grad else None)
         self._final = state
         _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
-                   n_frames, n_sub, dt, N, B)
+                   n_frames, n_sub, np.min(dt), N, B)
         return out
 
     def backward(self, dL_dx: np.ndarray) -> Gradients:
