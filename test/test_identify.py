@@ -35,7 +35,7 @@ from mosiv_ros.identify.observations import Observations, TrackAttachment, View,
 from mosiv_ros.identify.run import fit_problem, phase_progress
 from mosiv_ros.progress import TimeLeft, duration
 from mosiv_ros.recon.views import OCCLUDED
-from mosiv_ros.sim import Ground, ObjectModel, Particles
+from mosiv_ros.sim import BodyForce, Gravity, Ground, ObjectModel, Particles
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
 from mosiv_ros.sim.errors import ParameterError, SimulationDiverged
 from mosiv_ros.sim.materials import MATERIAL_PARAMS
@@ -409,6 +409,26 @@ def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
         np.testing.assert_allclose(got[0], expected[0], rtol=SAME)
         np.testing.assert_allclose(got[1], expected[1], rtol=SAME)
     assert np.abs(window[1]).min() > 0 and window[0] > 0
+
+
+def test_rows_at_their_own_steps_in_one_batch_score_as_alone_and_a_diverging_row_loses_only_itself():
+    # On a GPU the rows that each take their own time step go in one batch (own_step_batches),
+    # here on the CPU. The strong body force makes the softest rows invert at their own steps
+    problem, _ = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=8)
+    problem.sim_config.effects = [Gravity(), BodyForce(a=(100.0, 100.0, 100.0))]
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    alone, batched = (Identifier(problem, FitSettings(cpu_workers=1)) for _ in range(2))
+    batched.search.own_step_batches = True
+    (e,) = (entry.coordinate for entry in alone.entries)
+    for moduli, diverging in (((1e5, 3e4, 1e4), [False] * 3), ((1e5, 1e3, 3e4), [False, True, False])):
+        candidates = np.array([[e.to_u(E)] for E in moduli])
+        expected = alone.search.batch_object_losses(candidates, velocity, together=False)
+        got = batched.search.batch_object_losses(candidates, velocity, together=False)
+        for a, b in zip(got, expected, strict=True):
+            np.testing.assert_array_equal(a, b)
+        assert np.isnan(got[0]).tolist() == diverging
+    assert (3, 0) in batched.search.simulators and (3, 0) not in alone.search.simulators
 
 
 @pytest.mark.skipif(DEVICE != "cpu", reason="CPU workers split CPU simulations only")

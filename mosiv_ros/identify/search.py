@@ -86,6 +86,10 @@ class GlobalSearch:
         self.timing: dict[str, float] = {}
         """Of the last ``batch_object_losses``: ``rollout_s`` and ``score_s``, each summed over its
         rollouts (on several CPU cores the sums exceed the wall time)."""
+        self.own_step_batches = identifier.sim.device.startswith("cuda")
+        """Whether rows that each take their own time step go in one batched rollout whose rows
+        step on their own (``Simulator.rollout(own_steps=True)``): on a GPU, where a batch costs
+        about what its stiffest row does; on the CPU each row runs alone, side by side."""
 
     def batch_losses(self, candidates: np.ndarray, velocity: np.ndarray,
                      frames: int | None = None, together: bool | None = None) -> np.ndarray:
@@ -98,15 +102,16 @@ class GlobalSearch:
         batched rollout; else each row at its own stable time step (on the CPU a batch costs as
         much as its rows, and the loss of one parameter set differs by up to 10 % between time
         steps), on a GPU in one batched rollout whose rows take their own steps
-        (``Simulator.rollout(own_steps=True)``; one row after another in a scene with colliders or
-        with stress or grid-force effects). On the CPU the rows, or slices of them when together,
-        are simulated side by side, one simulator per core (``FitSettings.cpu_workers``). Over
-        frames 1..``frames`` (default all); NaN where a rollout diverged (every row of its batch or
-        slice).
+        (``Simulator.rollout(own_steps=True)``, ``own_step_batches``; one row after another in a
+        scene with colliders or with stress or grid-force effects). On the CPU the rows, or slices
+        of them when together, are simulated side by side, one simulator per core
+        (``FitSettings.cpu_workers``). Over frames 1..``frames`` (default all); NaN where a rollout
+        diverged (every row of its batch or slice).
 
         The GPU's default keeps the stiffest row's step: scored at their own steps, the search's
         rows of elastic_on_plastic led it to another basin (benchmarks/RESULTS.md, "Search rows at
-        their own time steps").
+        their own time steps"). Where a row of a batch at their own steps diverges, the rows are
+        scored again one at a time, so that only it is NaN.
         """
         return self.batch_object_losses(candidates, velocity, frames, together)[0]
 
@@ -123,7 +128,7 @@ class GlobalSearch:
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
         cuda = fit.sim.device.startswith("cuda")
-        own = cuda and together is False and substeps is None and fit.sim.own_steps_allowed
+        own = self.own_step_batches and together is False and substeps is None and fit.sim.own_steps_allowed
         together = own or (cuda or substeps is not None if together is None else together)
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
@@ -165,6 +170,14 @@ class GlobalSearch:
             results = [done[i] for i in range(len(jobs))]
         self.timing = dict(zip(("rollout_s", "score_s"), np.sum([s for *_, s in results], axis=0).tolist(),
                                strict=True))
+        if own and len(candidates) > 1 and any(np.all(np.isnan(total)) for total, *_ in results):
+            # a row diverged and took its batch's rows with it: each alone, so only it is lost
+            _LOG.info("scoring the %d rows one at a time", len(candidates))
+            own_step_batches, self.own_step_batches = self.own_step_batches, False
+            try:
+                return self.batch_object_losses(candidates, velocity, frames, False)
+            finally:
+                self.own_step_batches = own_step_batches
         return (np.concatenate([total for total, *_ in results]),
                 np.concatenate([per for _, per, _ in results]))
 
