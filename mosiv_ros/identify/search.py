@@ -124,11 +124,17 @@ class GlobalSearch:
         ``substeps``: every row at this many substeps per frame, together (refused below a row's
         stability bound); by default the stiffest row's when together.
         """
+        own = (self.own_step_batches and together is False and substeps is None
+               and self.identifier.sim.own_steps_allowed)
+        return self._losses(candidates, velocity, frames, together, substeps, own)
+
+    def _losses(self, candidates: np.ndarray, velocity: np.ndarray, frames: int | None,
+                together: bool | None, substeps: int | None, own: bool) -> tuple[np.ndarray, np.ndarray]:
+        """``batch_object_losses``; ``own``: the rows, each at its own step, in one batch."""
         fit = self.identifier
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
         cuda = fit.sim.device.startswith("cuda")
-        own = self.own_step_batches and together is False and substeps is None and fit.sim.own_steps_allowed
         together = own or (cuda or substeps is not None if together is None else together)
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
@@ -173,11 +179,7 @@ class GlobalSearch:
         if own and len(candidates) > 1 and any(np.all(np.isnan(total)) for total, *_ in results):
             # a row diverged and took its batch's rows with it: each alone, so only it is lost
             _LOG.info("scoring the %d rows one at a time", len(candidates))
-            own_step_batches, self.own_step_batches = self.own_step_batches, False
-            try:
-                return self.batch_object_losses(candidates, velocity, frames, False)
-            finally:
-                self.own_step_batches = own_step_batches
+            return self._losses(candidates, velocity, frames, False, None, False)
         return (np.concatenate([total for total, *_ in results]),
                 np.concatenate([per for _, per, _ in results]))
 

@@ -378,6 +378,17 @@ class _Colliders:
     omega: wp.array | None = None
 
 
+@dataclass(frozen=True)
+class _OwnSteps:
+    """Each batch row's own substep (``dt``) and substeps per frame, where rows take their own steps.
+
+    The kernels read them as ``own_<name>`` (``Simulator.rollout(own_steps=True)``).
+    """
+
+    dt: wp.array
+    substeps: wp.array
+
+
 ADJOINT_PARTS = 2
 """Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
 SUBSTEP_HEADROOM = 1.15
@@ -417,11 +428,11 @@ def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object])
     A parameter takes, in this order: the value ``given`` under its name; field ``<field>`` of
     the bundle ``given`` as ``<bundle>`` when it is named ``<bundle>_<field>`` (a ``_State``
     as ``src``, ``dst`` or ``state``, a ``_Grid`` as ``grid``, the ``_Colliders`` as
-    ``collider``); or the simulator's value of that name (``Simulator._scene``: sizes, grid
-    geometry, per-particle and per-object constants, every parameter's replicas with its dots
-    written as underscores, e.g. ``ground_height``). So the kernels' signatures are the only
-    lists of their arguments. A parameter found nowhere, or a given value no parameter takes,
-    is an error naming it.
+    ``collider``, the ``_OwnSteps`` as ``own``); or the simulator's value of that name
+    (``Simulator._scene``: sizes, grid geometry, per-particle and per-object constants, every
+    parameter's replicas with its dots written as underscores, e.g. ``ground_height``). So the
+    kernels' signatures are the only lists of their arguments. A parameter found nowhere, or a
+    given value no parameter takes, is an error naming it.
     """
     args, used = [], set()
     for arg in kernel.adj.args:
@@ -579,9 +590,8 @@ class Simulator:
         self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
         self._adjoint_commands: dict[tuple, tuple[wp.Kernel, object, list, list]] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
-        # each row's dt and substeps per frame where rows take their own steps (``rollout``)
-        self._own_steps = (wp.zeros(self.n_batch, dtype=float, device=d),
-                           wp.zeros(self.n_batch, dtype=int, device=d))
+        self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
+                                    wp.zeros(self.n_batch, dtype=int, device=d))
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -868,8 +878,7 @@ class Simulator:
         default the rollouts', apply). ``own``: each batch row at its own time step
         (``rollout``), ``dt`` unused.
         """
-        steps = {"own_dt": self._own_steps[0], "own_substeps": self._own_steps[1]} if own else {}
-        own_dt = {"own_dt": self._own_steps[0]} if own else {}
+        steps = {"own": self._own_steps} if own else {}  # else the scene's empty arrays: one dt
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
         grid.zero((box_lo, box_dims))
@@ -887,9 +896,9 @@ class Simulator:
         n_box = view.n_box
         box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
         if K > 1:
-            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **own_dt)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **steps)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
-                  **box, dt=dt, **own_dt)
+                  **box, dt=dt, **steps)
         self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
@@ -1071,8 +1080,7 @@ class Simulator:
     def _diverged(self, stats: np.ndarray, frame: int, dt: float | np.ndarray) -> None:
         """Raise ``SimulationDiverged`` if a frame's check statistics say so (``dt``: each row's, or all rows')."""
         stats = stats.reshape(self.n_batch, self.n_objects, 4)
-        for b in range(self.n_batch):
-            row_dt = float(np.broadcast_to(dt, (self.n_batch,))[b])
+        for b, row_dt in enumerate(np.broadcast_to(dt, (self.n_batch,)).tolist()):
             limit = self.dx / row_dt
             for k, o in enumerate(self.objects):
                 speed, bad, outside, det = stats[b, k]
@@ -1169,8 +1177,8 @@ class Simulator:
                 raise ParameterError("rows at their own time steps need a scene without colliders and "
                                      "without effects that add stresses or grid accelerations")
             row_substeps, row_dt = self.own_time_steps()
-            self._own_steps[0].assign(row_dt.astype(np.float32))
-            self._own_steps[1].assign(row_substeps.astype(np.int32))
+            self._own_steps.dt.assign(row_dt.astype(np.float32))
+            self._own_steps.substeps.assign(row_substeps.astype(np.int32))
             n_sub, dt = int(row_substeps.max()), row_dt
         else:
             n_sub, dt = self.time_step(substeps)
