@@ -116,7 +116,9 @@ class ReconstructionConfig:
     mask_filter: int = _param(
         3, "Side, pixels, of the majority filter applied to instance masks (odd; 0 or 1 = off).", 0, 31)
     partial_set_timeout: float = _param(
-        0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them.", 0.0, 60.0)
+        0.5, "Seconds after which a frame set still lacking cameras is reconstructed without them, "
+        "or without the gripper's pose at its stamp: frames that much later came, or none for that long.",
+        0.0, 60.0)
     image_history: int = _param(
         30, "Messages each camera topic's subscription keeps while the node is busy (keep-last depth of "
         "the sensor-data profile): a stall of fewer frames loses none; each held message costs its "

@@ -24,6 +24,7 @@ STREAM = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
 FRAMES = 5
+PRESSED_CUBE = Path(__file__).resolve().parents[1] / "bags" / "pressed_cube"
 RECON = {"voxel_size": 0.01}
 LIFT = {"particle_spacing": 0.008}
 
@@ -147,14 +148,32 @@ def test_a_burst_of_frames_faster_than_the_node_takes_them_reaches_it_whole(tmp_
 def test_reconstruction_node_lets_the_gripper_on_gripper_pose_hide_the_cube_as_the_core_does(listener):
     # bags/pressed_cube: a plate the masks leave out presses the cube; the node places it from
     # /gripper/pose and /tf_static, and its clouds are the in-process core's, which uses the poses
-    bag = Path(__file__).resolve().parents[1] / "bags" / "pressed_cube"
-    frames = reconstruct_recording(read_recording(bag), ReconstructionConfig())
-    received, lines = _replayed_through_reconstruction(listener, bag, {}, len(frames))
+    # and a set waits for the pose at its stamp however slow the machine (a timeout past any stall)
+    frames = reconstruct_recording(read_recording(PRESSED_CUBE), ReconstructionConfig())
+    received, lines = _replayed_through_reconstruction(listener, PRESSED_CUBE, {"partial_set_timeout": 30.0},
+                                                       len(frames))
     assert received, "\n".join(lines[-30:])
+    assert not any("gripper held at its pose" in line for line in lines)
     for msg, frame in zip(listener.received["/mosiv/observed_objects"], frames, strict=True):
         got, want = pointcloud_from_msg(msg), frame.to_cloud()
         np.testing.assert_array_equal(got.xyz, want.xyz)
     assert frames[0].objects[1].occupancy[:, 2].max() > 0.05  # the cube's top, under the plate
+
+
+@pytest.mark.slow
+def test_a_gripper_pose_stream_that_stops_leaves_the_gripper_where_it_last_was_with_one_warning(tmp_path, listener):
+    # the poses stop after the 8th of 19 frames: the later sets wait no longer than the streams
+    # allow, hold the last pose (as the core does past the last pose) and say so once
+    recording = read_recording(PRESSED_CUBE)
+    recording.gripper_poses = recording.gripper_poses[:8]
+    bag = write_recording(recording, tmp_path / "poses_stop")
+    frames = reconstruct_recording(read_recording(bag), ReconstructionConfig())
+    received, lines = _replayed_through_reconstruction(listener, bag, {}, len(frames))
+    assert received, "\n".join(lines[-30:])
+    held = [line for line in lines if "gripper held at its pose" in line]
+    assert len(held) == 1 and f"pose of stamp {recording.gripper_poses[-1][0]} ns" in held[0], held
+    for msg, frame in zip(listener.received["/mosiv/observed_objects"], frames, strict=True):
+        np.testing.assert_array_equal(pointcloud_from_msg(msg).xyz, frame.to_cloud().xyz)
 
 
 @pytest.mark.slow

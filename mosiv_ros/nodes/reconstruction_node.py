@@ -2,8 +2,8 @@
 
 Subscribes to every camera's color image, instance mask, optional depth and CameraInfo (the
 sensor-data QoS), to ``/tf_static`` and, for a scene that declares a gripper, to ``/gripper/pose``
-(the gripper at each set's stamp hides what lies behind it, ``recon.gripper``; a set waits up to
-``partial_set_timeout`` for the pose at its stamp); assembles each camera's frames and groups the cameras'
+(the gripper at each set's stamp hides what lies behind it, ``recon.gripper``; a set waits for the
+pose at its stamp as it waits for a late camera); assembles each camera's frames and groups the cameras'
 frames by stamp with the core's matcher. Each frame set goes to the core's ``Reconstructor``;
 the result is published on ``/mosiv/observed_objects``: a PointCloud2 in ``world`` with fields
 x, y, z (float32), object_id (uint16), voxel_size (float32: the edge of the voxel a point is
@@ -95,8 +95,12 @@ class ReconstructionNode(Node):
         self.last_frame_time = time.monotonic()
         self.create_timer(0.1, self._flush_when_idle)
         self.create_subscription(TFMessage, "/tf_static", self._on_tf_static, TF_STATIC_QOS)
-        self.gripper = gripper_poses(self, transforms=self.transforms)
+        # The worker waits on ``arrived`` for a set's gripper pose; each frame and pose notifies it.
+        self.arrived = threading.Condition()
+        self.last_pose_time = time.monotonic()
+        self.gripper = gripper_poses(self, on_change=self._on_pose, transforms=self.transforms)
         self.warned_no_gripper = False
+        self.warned_held_ns: int | None = None
         if self.config.cameras:
             self._add_cameras(self.config.cameras)
         else:
@@ -190,8 +194,10 @@ class ReconstructionNode(Node):
         camera, frame = camera_frame
         if frame is None or self.matcher is None:
             return
-        self.last_frame_time = time.monotonic()
-        self.newest_ns = max(self.newest_ns, frame.stamp_ns)
+        with self.arrived:
+            self.last_frame_time = time.monotonic()
+            self.newest_ns = max(self.newest_ns, frame.stamp_ns)
+            self.arrived.notify_all()
         complete = self.matcher.add(camera, frame)
         # Sets older than a completed one, or than the timeout, will not complete any more.
         cutoff = self.newest_ns - int(self.config.partial_set_timeout * 1e9)
@@ -250,25 +256,43 @@ class ReconstructionNode(Node):
             f"published observed objects {self.published} (stamp {frame_set.stamp_ns} ns): "
             f"{observed.summary()}; mean {self.seconds / self.published * 1e3:.0f} ms per set")
 
+    def _on_pose(self) -> None:
+        with self.arrived:
+            self.last_pose_time = time.monotonic()
+            self.arrived.notify_all()
+
     def _gripper_pose(self, stamp_ns: int):
         """The declared gripper's pose at ``stamp_ns`` (None without one, or without poses).
 
-        Waits (in the worker thread) up to ``partial_set_timeout`` for a pose at or after the
-        stamp, as a set waits for a late camera; past that, the poses so far (the last held).
+        Waits (in the worker thread) for a pose at or after the stamp as a set waits for a late
+        camera: until frames stamped ``partial_set_timeout`` past it have come (the pose stream
+        lags), or nothing (frame or pose) has come for that long (the streams stopped). Both
+        follow the streams, not the worker's wall clock, so a busy node waits no less. Past that,
+        the poses so far: the last held, with a warning.
         """
         if self.scene is None or self.scene.gripper is None:
             return None
-        deadline = time.monotonic() + self.config.partial_set_timeout
-        while True:
-            poses = self.gripper.world()[0]
-            if (poses and poses[-1][0] >= stamp_ns) or time.monotonic() >= deadline:
-                break
-            time.sleep(0.01)
-        if not poses and not self.warned_no_gripper:
-            self.warned_no_gripper = True
+        timeout = self.config.partial_set_timeout
+        with self.arrived:
+            while True:
+                poses = self.gripper.world()[0]
+                if poses and poses[-1][0] >= stamp_ns:
+                    return gripper_at(poses, stamp_ns)
+                quiet = time.monotonic() - max(self.last_frame_time, self.last_pose_time)
+                if self.newest_ns - stamp_ns > timeout * 1e9 or quiet >= timeout:
+                    break
+                self.arrived.wait(timeout - quiet)
+        if not poses:
+            if not self.warned_no_gripper:
+                self.warned_no_gripper = True
+                self.get_logger().warning(
+                    f"stamp {stamp_ns} ns: the scene declares a gripper but no pose of it has come on "
+                    "/gripper/pose: its pixels carve what lies behind it until one does")
+        elif self.warned_held_ns != poses[-1][0]:  # once for each pose held
+            self.warned_held_ns = poses[-1][0]
             self.get_logger().warning(
-                f"stamp {stamp_ns} ns: the scene declares a gripper but no pose of it has come on "
-                "/gripper/pose: its pixels carve what lies behind it until one does")
+                f"stamp {stamp_ns} ns: no /gripper/pose at or after it within partial_set_timeout "
+                f"({timeout} s of the streams): the gripper held at its pose of stamp {poses[-1][0]} ns")
         return gripper_at(poses, stamp_ns)
 
     def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
