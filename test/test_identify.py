@@ -22,6 +22,8 @@ from mosiv_ros.identify.curriculum import Adam, FitState
 from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, estimates_of
 from mosiv_ros.identify.fit import SPLAT_SHARE, FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import (
+    TargetBlocks,
+    _morton,
     chamfer,
     chamfer_batch,
     geometry_loss,
@@ -204,7 +206,7 @@ def test_the_tensor_nearest_neighbour_is_exact_and_takes_the_lowest_index_of_a_t
     q, q_valid = padded([a for a, _ in jobs], "cpu")
     t, t_valid = padded([b for _, b in jobs], "cpu")
     q_valid[0, :10] = False  # queries that are padding
-    d2, index = (a.numpy() for a in nearest(q, q_valid, t, t_valid))
+    d2, index = (a.numpy() for a in nearest(q, q_valid, TargetBlocks.of(t, t_valid)))
     ties = 0
     for j, (a, b) in enumerate(jobs):
         asked = q_valid[j, :len(a)].numpy()
@@ -219,6 +221,31 @@ def test_the_tensor_nearest_neighbour_is_exact_and_takes_the_lowest_index_of_a_t
         np.testing.assert_allclose(d2[j, :len(a)][asked], distance**2, rtol=1e-14, atol=1e-300)
         ties += int(np.sum(np.sum(full == full.min(axis=1, keepdims=True), axis=1) > 1))
     assert ties > 300  # the lattice jobs did tie
+
+
+def test_z_order_keys_interleave_the_cells_bits_and_put_invalid_points_last():
+    rng = np.random.default_rng(4)
+    points = torch.as_tensor(rng.uniform(-1, 1, (2, 50, 3)))
+    valid = torch.as_tensor(rng.random((2, 50)) > 0.2)
+    keys = _morton(points, valid).numpy()
+    for j in range(2):
+        p, v = points[j].numpy(), valid[j].numpy()
+        lo, hi = p[v].min(axis=0), p[v].max(axis=0)
+        cells = np.clip((p - lo) / (hi - lo) * 1023, 0, 1023).astype(np.int64)
+        for i in range(50):
+            want = sum(((int(cells[i, axis]) >> b) & 1) << (3 * b + axis) for b in range(10) for axis in range(3))
+            assert keys[j, i] == (want if v[i] else 1 << 31)
+
+
+def test_target_blocks_of_some_frames_repeated_over_rows_are_those_built_for_them():
+    rng = np.random.default_rng(5)
+    y, y_valid = padded([rng.normal(size=(n, 3)) for n in (70, 0, 130, 90, 20)], "cpu")
+    rows, frames = 3, slice(1, 4)
+    built = TargetBlocks.of(y[frames].expand(rows, -1, -1, -1).reshape(-1, *y.shape[1:]),
+                            y_valid[frames].expand(rows, -1, -1).reshape(-1, y.shape[1]))
+    taken = TargetBlocks.of(y, y_valid).jobs(frames, rows)
+    for name in ("points", "valid", "order", "lo", "hi", "centroid"):
+        np.testing.assert_array_equal(getattr(taken, name).numpy(), getattr(built, name).numpy())
 
 
 def test_the_tensor_chamfer_equals_the_kd_tree_chamfer_and_its_gradient():

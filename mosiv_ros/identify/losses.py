@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import math
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 import torch
@@ -135,48 +135,75 @@ def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return total
 
 
+def _spread_bits() -> np.ndarray:
+    """(1024,) each 10-bit value with its bits moved to every third bit (bit b to bit 3 b)."""
+    values = np.arange(1024, dtype=np.int64)
+    return sum(((values >> b) & 1) << (3 * b) for b in range(10))
+
+
+_SPREAD = _spread_bits()
+
+
 def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     """(J, M) Z-order keys of points (J, M, 3), invalid points last.
 
-    On a 1024^3 lattice over the bounding box of each job's valid points.
+    On a 1024^3 lattice over the bounding box of each job's valid points; each axis's cell
+    spread to every third bit by a table (``_SPREAD``), x lowest.
     """
     inf = torch.tensor(math.inf, dtype=points.dtype, device=points.device)
     lo = torch.where(valid[..., None], points, inf).amin(dim=1, keepdim=True)
     hi = torch.where(valid[..., None], points, -inf).amax(dim=1, keepdim=True)
     scaled = (points - lo) / (hi - lo).clamp(min=1e-12) * 1023
     cell = torch.where(valid[..., None], scaled, 0.0).clamp(0, 1023).long()
-    key = torch.zeros_like(cell[..., 0])
-    for axis in range(3):  # spread the 10 bits of each axis to every third bit
-        v = cell[..., axis]
-        for shift, mask in ((16, 0x030000FF), (8, 0x0300F00F), (4, 0x030C30C3), (2, 0x09249249)):
-            v = (v | (v << shift)) & mask
-        key |= v << axis
+    spread = torch.as_tensor(_SPREAD, device=points.device)[cell]
+    key = spread[..., 0] | (spread[..., 1] << 1) | (spread[..., 2] << 2)
     return torch.where(valid, key, 1 << 31)
 
 
-def _target_blocks(targets: torch.Tensor, valid: torch.Tensor):
-    """Each job's targets sorted along a Z-order curve into blocks (``NEAREST_BLOCK``).
+@dataclass
+class TargetBlocks:
+    """Each job's targets sorted along a Z-order curve into blocks of S (``NEAREST_BLOCK``).
 
-    Returns the points (J, B, S, 3), which are valid (J, B, S), their indices in ``targets``
-    (J, B, S), each block's bounding box, lower and upper corner (J, B, 3) (+inf and -inf for a
-    block without a valid point), and the centroid of its valid points (J, B, 3) (1e100 without).
+    ``points`` (J, B, S, 3), which are valid (J, B, S), their indices in the targets given
+    (``order``, J, B, S), each block's bounding box, lower and upper corner (J, B, 3) (+inf
+    and -inf for a block without a valid point), and the centroid of its valid points (J, B, 3)
+    (1e100 without). Built once for targets that do not change (the observed points,
+    ``ObservedTensors.blocks``) and taken by any queries after (``nearest``).
     """
-    n_jobs, m = valid.shape
-    least, most = NEAREST_BLOCK
-    size = int(np.clip(2 ** round(math.log2(max(math.sqrt(m) / 2, 1))), least, most))
-    blocks = max(1, -(-m // size))
-    extra = blocks * size - m
-    targets = torch.cat([targets, targets.new_zeros((n_jobs, extra, 3))], dim=1)
-    valid = torch.cat([valid, valid.new_zeros((n_jobs, extra))], dim=1)
-    order = _morton(targets, valid).argsort(dim=1, stable=True)
-    points = targets.gather(1, order[..., None].expand(-1, -1, 3)).view(n_jobs, blocks, size, 3)
-    valid = valid.gather(1, order).view(n_jobs, blocks, size)
-    lo = torch.where(valid[..., None], points, math.inf).amin(dim=2)
-    hi = torch.where(valid[..., None], points, -math.inf).amax(dim=2)
-    count = valid.sum(dim=2, keepdim=True)
-    centroid = torch.where(count > 0, torch.where(valid[..., None], points, 0.0).sum(dim=2) / count.clamp(min=1),
-                           1e100)
-    return points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid
+
+    points: torch.Tensor
+    valid: torch.Tensor
+    order: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    centroid: torch.Tensor
+
+    @classmethod
+    def of(cls, targets: torch.Tensor, valid: torch.Tensor) -> TargetBlocks:
+        """The blocks of targets (J, M, 3) of which ``valid`` (J, M) are points."""
+        n_jobs, m = valid.shape
+        least, most = NEAREST_BLOCK
+        size = int(np.clip(2 ** round(math.log2(max(math.sqrt(m) / 2, 1))), least, most))
+        blocks = max(1, -(-m // size))
+        extra = blocks * size - m
+        targets = torch.cat([targets, targets.new_zeros((n_jobs, extra, 3))], dim=1)
+        valid = torch.cat([valid, valid.new_zeros((n_jobs, extra))], dim=1)
+        order = _morton(targets, valid).argsort(dim=1, stable=True)
+        points = targets.gather(1, order[..., None].expand(-1, -1, 3)).view(n_jobs, blocks, size, 3)
+        valid = valid.gather(1, order).view(n_jobs, blocks, size)
+        lo = torch.where(valid[..., None], points, math.inf).amin(dim=2)
+        hi = torch.where(valid[..., None], points, -math.inf).amax(dim=2)
+        count = valid.sum(dim=2, keepdim=True)
+        centroid = torch.where(count > 0, torch.where(valid[..., None], points, 0.0).sum(dim=2)
+                               / count.clamp(min=1), 1e100)
+        return cls(points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid)
+
+    def jobs(self, index: slice, repeats: int = 1) -> TargetBlocks:
+        """The blocks of jobs ``index``, the whole run of them ``repeats`` times over."""
+        def taken(a: torch.Tensor) -> torch.Tensor:
+            a = a[index]
+            return a if repeats == 1 else a.expand(repeats, *a.shape).reshape(-1, *a.shape[1:])
+        return TargetBlocks(*(taken(getattr(self, f.name)) for f in fields(self)))
 
 
 @wp.func_native("""
@@ -250,18 +277,18 @@ def _nearest_in_blocks(queries: wp.array2d(dtype=wp.vec3d), query_valid: wp.arra
     index[j, i] = lowest
 
 
-def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Tensor,
-            target_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def nearest(queries: torch.Tensor, query_valid: torch.Tensor,
+            targets: TargetBlocks) -> tuple[torch.Tensor, torch.Tensor]:
     """The exact nearest valid target of each valid query, for J jobs at once, on their device.
 
-    ``queries`` (J, N, 3) and ``targets`` (J, M, 3) float64, which are points ``query_valid``
-    (J, N) and ``target_valid`` (J, M) (the rest is padding). Returns the squared distance
+    ``queries`` (J, N, 3) float64, which are points ``query_valid`` (J, N) (the rest is
+    padding), and each job's targets sorted into blocks (``TargetBlocks``). Returns the squared distance
     (J, N) and the index into ``targets`` (J, N) of each query's nearest target: the lowest index
     among equally near ones (a KD-tree takes any of them); inf and -1 for an invalid query or a
     job without a valid target. Distances are summed as the KD-tree sums them, (dx^2 + dy^2) +
     dz^2, each product and sum rounded on its own, so that the two find equally near targets.
 
-    The targets are sorted into blocks along a Z-order curve (``_target_blocks``). One thread per
+    The targets are sorted into blocks along a Z-order curve (``TargetBlocks``). One thread per
     query (a Warp kernel on the tensors' device, in torch's stream) searches the block whose
     centroid is nearest to it exhaustively, then every other block whose bounding box is no
     farther than the nearest target found so far. The box distances are rounded down as the point
@@ -270,7 +297,6 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
     """
     n_jobs, n = query_valid.shape
     device = queries.device
-    points, valid, order, lo, hi, centroid = _target_blocks(targets, target_valid)
     best = torch.empty((n_jobs, n), dtype=torch.float64, device=device)
     index = torch.empty((n_jobs, n), dtype=torch.long, device=device)
     if n_jobs and n:
@@ -278,11 +304,11 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor, targets: torch.Ten
         load_modules(where, [__name__])
         args = [wp.from_torch(queries.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(query_valid.to(torch.uint8).contiguous()),
-                wp.from_torch(points.contiguous(), dtype=wp.vec3d),
-                wp.from_torch(valid.to(torch.uint8).contiguous()),
-                wp.from_torch(order.contiguous()), wp.from_torch(lo.contiguous(), dtype=wp.vec3d),
-                wp.from_torch(hi.contiguous(), dtype=wp.vec3d),
-                wp.from_torch(centroid.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(targets.points.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(targets.valid.to(torch.uint8).contiguous()),
+                wp.from_torch(targets.order.contiguous()), wp.from_torch(targets.lo.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(targets.hi.contiguous(), dtype=wp.vec3d),
+                wp.from_torch(targets.centroid.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(best), wp.from_torch(index)]
         if device.type == "cpu":
             wp.launch(_nearest_in_blocks, dim=(n_jobs, n), inputs=args, device=where)
@@ -298,17 +324,18 @@ def _take(points: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
 
 
 def chamfer_batch(x: torch.Tensor, x_valid: torch.Tensor, y: torch.Tensor,
-                  y_valid: torch.Tensor) -> torch.Tensor:
+                  y_valid: torch.Tensor, y_blocks: TargetBlocks | None = None) -> torch.Tensor:
     """``chamfer`` of J pairs of point sets as tensors, on their device: (J,) values.
 
     ``x`` (J, N, 3) and ``y`` (J, M, 3) float64 (N, M >= 1), padded, with which entries are
-    points ``x_valid`` (J, N) and ``y_valid`` (J, M). The values are differentiable in ``x``
+    points ``x_valid`` (J, N) and ``y_valid`` (J, M); ``y_blocks`` the ``y`` sorted into blocks
+    if they are at hand (built here if not). The values are differentiable in ``x``
     (autograd), each nearest neighbour held fixed as ``chamfer``'s gradient holds it; 0 where
     either set is empty. Nearest neighbours by ``nearest``.
     """
     with torch.no_grad():
-        _, to_y = nearest(x.detach(), x_valid, y, y_valid)
-        _, to_x = nearest(y, y_valid, x.detach(), x_valid)
+        _, to_y = nearest(x.detach(), x_valid, y_blocks or TargetBlocks.of(y, y_valid))
+        _, to_x = nearest(y, y_valid, TargetBlocks.of(x.detach(), x_valid))
     nx, ny = x_valid.sum(dim=1), y_valid.sum(dim=1)
     both = ((nx > 0) & (ny > 0))[:, None]
     there = torch.where(x_valid & both, _squared(x, _take(y, to_y)), 0.0).sum(dim=1)
@@ -316,19 +343,26 @@ def chamfer_batch(x: torch.Tensor, x_valid: torch.Tensor, y: torch.Tensor,
     return there / nx.clamp(min=1) + back / ny.clamp(min=1)
 
 
-def _chamfer_rows(x: torch.Tensor, visible: torch.Tensor, y: torch.Tensor,
-                  y_valid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _chamfer_rows(x: torch.Tensor, visible: torch.Tensor, observed: ObservedTensors, k: int,
+                  frames: slice) -> tuple[torch.Tensor, torch.Tensor]:
     """Chamfer of each row's particles against each frame's points: values and which scored.
 
-    ``x`` (R, F, N, 3) the particles (those ``visible`` (R, N) of each row), ``y`` (F, M, 3) the
-    points (``y_valid`` (F, M)). Returns the values (R, F) and whether both sets had points (R, F).
+    ``x`` (R, F, N, 3) the particles (those ``visible`` (R, N) of each row) at ``frames`` of
+    ``observed``; against object ``k``'s points there (-1: every object's, the scene-level
+    loss). Returns the values (R, F) and whether both sets had points (R, F).
     """
-    rows, frames, n = x.shape[:3]
-    x_valid = visible[:, None].expand(rows, frames, n).reshape(rows * frames, n)
-    y_valid = y_valid.expand(rows, *y_valid.shape).reshape(rows * frames, -1)
-    values = chamfer_batch(x.reshape(rows * frames, n, 3), x_valid,
-                           y.expand(rows, *y.shape).reshape(rows * frames, -1, 3), y_valid)
-    return values.view(rows, frames), (x_valid.any(dim=1) & y_valid.any(dim=1)).view(rows, frames)
+    rows, n_frames, n = x.shape[:3]
+    y, y_valid = ((observed.union, observed.union_valid) if k < 0
+                  else (observed.points[k], observed.valid[k]))
+    if k not in observed.blocks:  # the observed points of every frame, sorted once
+        observed.blocks[k] = TargetBlocks.of(y, y_valid)
+    y, y_valid = y[frames], y_valid[frames]
+    x_valid = visible[:, None].expand(rows, n_frames, n).reshape(rows * n_frames, n)
+    y_valid = y_valid.expand(rows, *y_valid.shape).reshape(rows * n_frames, -1)
+    values = chamfer_batch(x.reshape(rows * n_frames, n, 3), x_valid,
+                           y.expand(rows, *y.shape).reshape(rows * n_frames, -1, 3), y_valid,
+                           observed.blocks[k].jobs(frames, rows))
+    return values.view(rows, n_frames), (x_valid.any(dim=1) & y_valid.any(dim=1)).view(rows, n_frames)
 
 
 def track_terms(x: torch.Tensor, tracks: TrackTensors, frames: slice, scale: float,
@@ -384,14 +418,13 @@ def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarra
     if loss.per_object:
         total = zeros[..., 0]
         for k in range(n_objects):
-            mine = np.flatnonzero(object_index == k)
+            mine = torch.as_tensor(np.flatnonzero(object_index == k), device=x.device)
             if len(mine):
-                values, scored = _chamfer_rows(x[:, :, mine], visible[:, mine], observed.points[k][frames],
-                                               observed.valid[k][frames])
+                values, scored = _chamfer_rows(x[:, :, mine], visible[:, mine], observed, k, frames)
                 chamfer[..., k] = torch.where(scored, values, math.nan)
                 total = total + torch.where(scored, values, 0.0)
     else:
-        total = _chamfer_rows(x, visible, observed.union[frames], observed.union_valid[frames])[0]
+        total = _chamfer_rows(x, visible, observed, -1, frames)[0]
     track = zeros
     if loss.track_weight > 0 and observed.tracks is not None:
         track = track_terms(x, observed.tracks, frames, loss.track_scale, n_objects)
@@ -422,9 +455,10 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reac
     inside = (px >= 0) & (px < width) & (py >= 0) & (py < height) & valid[..., None]
     d2 = (px - uv[..., 0, None]) ** 2 + (py - uv[..., 1, None]) ** 2
     w = SPLAT_OPACITY * torch.exp(-d2 / (2 * sigma[..., None] ** 2))
-    log_clear = torch.log1p(-w)[inside]
+    kept = inside.flatten().nonzero().squeeze(1)  # one read-back of the count on a GPU, not two
+    log_clear = torch.log1p(-w).flatten()[kept]
     image = torch.arange(n_images, device=uv.device).reshape(-1, 1, 1)
-    index = (image * (height * width) + py * width + px)[inside].long()
+    index = (image * (height * width) + py * width + px).flatten()[kept].long()
     total = torch.zeros(n_images * height * width, dtype=uv.dtype, device=uv.device)
     return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_images, height, width)
 
@@ -451,9 +485,15 @@ def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> list[int]:
 
     3 of the largest ``sigma`` (R, F, M) of the row's ``valid`` particles, rounded up, 1 to 8.
     """
-    largest = torch.where(valid, sigma.detach(), -math.inf).amax(dim=(1, 2))
+    return _reach_of([sigma], [valid])[0]
+
+
+def _reach_of(sigmas: list[torch.Tensor], valids: list[torch.Tensor]) -> list[list[int]]:
+    """``_reach`` of several groups of particles (each (R, F, M_g)), read back at once."""
+    largest = torch.stack([torch.where(valid, sigma.detach(), -math.inf).amax(dim=(1, 2))
+                           for sigma, valid in zip(sigmas, valids, strict=True)])
     reach = torch.where(largest > -math.inf, torch.clamp(torch.ceil(3 * largest), 1, 8), 0.0)
-    return [int(r) for r in reach.tolist()]
+    return [[int(r) for r in group] for group in reach.tolist()]
 
 
 @contextmanager
@@ -559,14 +599,17 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     """Per row and group (each object, or all with the scene-level loss) the loss of ``frames``.
 
     ``x`` (R, F, N, 3) the particles of R rows at ``frames`` (F,) of ``masks``, those
-    ``visible`` (R, N) rendered (None: all); returns (R, G), differentiable in ``x``.
+    ``visible`` (R, N) rendered (None: all); returns (R, G), differentiable in ``x``. Each
+    group's particles are taken by index (no boolean mask: on a GPU each would wait for the
+    device) and the splats' reach of every row and group is read back once per view.
     """
     rows, device = x.shape[0], x.device
     index = torch.as_tensor(object_index, device=device)
     radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)).copy(),
                              device=device)[index]  # (N,) each particle's object's
-    groups = ([(index == k, [object_ids[k]]) for k in range(len(object_ids))] if per_object
-              else [(torch.ones_like(index, dtype=torch.bool), list(object_ids))])
+    groups = ([[object_ids[k]] for k in range(len(object_ids))] if per_object else [list(object_ids)])
+    members = ([torch.as_tensor(np.flatnonzero(object_index == k), device=device) for k in range(len(object_ids))]
+               if per_object else [torch.arange(len(object_index), device=device)])
     totals = [torch.zeros(rows, dtype=torch.float64, device=device) for _ in groups]
     for v, view in enumerate(masks.views):
         local = np.flatnonzero(masks.framed[v][frames])
@@ -576,22 +619,22 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
         K = masks.K[v]
         uv, z, front = _splat_centres(x[:, torch.as_tensor(local, device=device)], masks.world_to_optical[v], K)
         sigma = torch.clamp(K[0, 0] * radius / z, min=0.5)
-        observed = masks.masks[v][shown]
-        for g, (mine, ids) in enumerate(groups):
-            valid = front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
-            reach = _reach(sigma[:, :, mine], valid)
-            target = torch.isin(observed, torch.as_tensor(ids, device=device)).to(x.dtype)
-            known = ((target > 0) | (observed == 0)).to(x.dtype)
-            pixels = known.sum(dim=(1, 2))
-            for value in sorted(set(reach) - {0}):  # rows of one reach together (no particle in view: 0)
-                same = torch.as_tensor([r for r, v in enumerate(reach) if v == value], device=device)
-                soft = _soft_masks_in_batches(uv[same][:, :, mine].flatten(0, 1), sigma[same][:, :, mine].flatten(0, 1),
-                                              valid[same].flatten(0, 1), value, view.height, view.width)
+        valid = [front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
+                 for mine in members]
+        reach = _reach_of([sigma[:, :, mine] for mine in members], valid)
+        for g, (mine, ids) in enumerate(zip(members, groups, strict=True)):
+            target, known, pixels = masks.shown(v, tuple(ids), shown)
+            for value in sorted(set(reach[g]) - {0}):  # rows of one reach together (no particle in view: 0)
+                same = [r for r, v in enumerate(reach[g]) if v == value]
+                pick = slice(None) if len(same) == rows else torch.as_tensor(same, device=device)
+                soft = _soft_masks_in_batches(uv[pick][:, :, mine].flatten(0, 1), sigma[pick][:, :, mine].flatten(0, 1),
+                                              valid[g][pick].flatten(0, 1), value, view.height, view.width)
                 soft = soft.unflatten(0, (len(same), len(local)))
                 # frames where every pixel is another object's, or no particle is in view: nothing
-                counted = (pixels > 0) & valid[same].any(dim=2)
+                counted = (pixels > 0) & valid[g][pick].any(dim=2)
                 per_frame = ((soft - target).abs() * known).sum(dim=(2, 3)) / pixels.clamp(min=1)
-                totals[g] = totals[g].index_add(0, same, (per_frame * counted * masks.frame_weight[shown]).sum(dim=1))
+                per_row = (per_frame * counted * masks.frame_weight[shown]).sum(dim=1)
+                totals[g] = totals[g] + per_row if len(same) == rows else totals[g].index_add(0, pick, per_row)
     return torch.stack(totals, dim=1)
 
 

@@ -152,6 +152,24 @@ class MaskTensors:
     frame_weight: torch.Tensor
     world_to_optical: list[torch.Tensor]
     K: list[torch.Tensor]
+    _groups: dict = field(default_factory=dict, repr=False)
+
+    def shown(self, view: int, ids: tuple[int, ...], frames: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What a silhouette of objects ``ids`` in ``view`` is compared with at ``frames``.
+
+        (F, H, W) float64 1 where the mask shows one of ``ids``; (F, H, W) float64 1 where it
+        is known for them (theirs or background: another object's pixel may hide them); (F,)
+        the known pixels' count. Derived from every frame's mask once per view and ids.
+        """
+        key = (view, ids)
+        if key not in self._groups:
+            mask = self.masks[view]
+            target = torch.isin(mask, torch.as_tensor(ids, device=mask.device))
+            known = target | (mask == 0)
+            self._groups[key] = (target, known, known.sum(dim=(1, 2), dtype=torch.float64))
+        target, known, pixels = self._groups[key]
+        return target[frames].double(), known[frames].double(), pixels[frames]
 
     @classmethod
     def of(cls, views: list[View], masks: list[dict[str, np.ndarray]], device: str) -> MaskTensors:
@@ -198,7 +216,8 @@ class ObservedTensors:
     ``points[k]`` (F, M, 3) and ``valid[k]`` (F, M): object k's observed points per frame,
     padded (``padded``); ``union``/``union_valid`` all objects' together (the scene-level
     loss); ``masks`` the views' masks (None without masks), ``tracks`` the tracks (None
-    without).
+    without). ``blocks[k]``: object k's points (-1: the union) sorted for the nearest
+    neighbours (``losses.TargetBlocks``), every frame's, built on first use.
     """
 
     points: list[torch.Tensor]
@@ -207,6 +226,7 @@ class ObservedTensors:
     union_valid: torch.Tensor
     masks: MaskTensors | None
     tracks: TrackTensors | None
+    blocks: dict = field(default_factory=dict)
 
 
 @dataclass
