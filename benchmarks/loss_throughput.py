@@ -12,6 +12,9 @@ velocities) and times:
 - ``window``: ``Identifier.window_loss`` over the whole fitted window with its gradient, split
   as the fit's history splits an iteration (``Identifier.timing``: simulation forward, loss,
   backward); two untimed calls first (kernel compilation, CUDA graph capture);
+- ``window_torch_ops``: the torch operations one such call issues on the tensor path (host work
+  on a GPU grows with them; the CPU's count is higher: it renders the silhouettes in smaller
+  batches, ``losses.SPLAT_BATCH``);
 - ``search``: ``GlobalSearch.batch_object_losses`` of ``--rows`` candidate rows drawn uniformly
   from the search's first box (``GlobalSearch.box``: the material parameters' prior ranges),
   as the search scores them by default (on a GPU one batch at the stiffest row's time step, on
@@ -36,6 +39,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from torch.profiler import ProfilerActivity, profile
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.identify.fit import FitSettings, Identifier
@@ -80,6 +84,13 @@ def timed(identifier: Identifier, paths: dict[str, str | None], call, timing, re
             for name, r in runs.items()}
 
 
+def torch_ops(call) -> int:
+    """The torch operations ``call()`` issues at the top level (an autograd node's backward is one)."""
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        call()
+    return sum(1 for event in prof.events() if event.cpu_parent is None)
+
+
 def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, tapes: bool) -> dict:
     identifier, velocity = identifier_of(bag, config)
     obs = identifier.problem.observations
@@ -106,7 +117,13 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
     timed(identifier, paths, window, lambda: {}, 2)
     timed(identifier, paths, search, lambda: {}, 1)
     kept = bool(identifier.sim.kept_tape_frames)
+    ops = {}
+    for name, device in paths.items():  # what a window's loss issues to torch, whatever each costs
+        if device is not None:
+            identifier.tensor_device = device
+            ops[name] = torch_ops(window)
     result = {"bag": str(bag), "device": identifier.sim.device, "particles": len(identifier.index),
+              "window_torch_ops": ops,
               "frames": n, "free": [e.label for e in identifier.entries], "rows": rows,
               "observed_points": int(sum(len(p) for frame in obs.points[1:] for p in frame)),
               "window": timed(identifier, paths, window, lambda: identifier.timing, repeats),
