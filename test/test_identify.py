@@ -172,6 +172,36 @@ def test_silhouette_treats_pixels_of_another_object_as_unknown():
     assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
 
 
+def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprint():
+    # the kernels against the definition: per pixel 1 - prod (1 - 0.9 w_i) over the valid splats
+    # whose (2 reach + 1)^2 footprint around their rounded centre holds it; the gradient against
+    # torch's autograd of that product
+    uv = torch.tensor(RNG.uniform(-3, 20, size=(3, 12, 2)), requires_grad=True)
+    sigma = torch.tensor(RNG.uniform(0.5, 2.0, size=(3, 12)), requires_grad=True)
+    valid = torch.tensor(RNG.random((3, 12)) > 0.2)
+    reach, height, width = 3, 14, 18
+    soft = losses._soft_masks(uv, sigma, valid, reach, height, width)
+    weights = torch.rand(soft.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    got = torch.autograd.grad((soft * weights).sum(), (uv, sigma))
+    rows, cols = torch.meshgrid(torch.arange(height, dtype=torch.float64),
+                                torch.arange(width, dtype=torch.float64), indexing="ij")
+    clear = torch.ones(soft.shape, dtype=torch.float64)
+    for i in range(3):
+        for m in range(12):
+            centre = torch.round(uv[i, m].detach())
+            near = ((cols - centre[0]).abs() <= reach) & ((rows - centre[1]).abs() <= reach)
+            if valid[i, m]:
+                d2 = (cols - uv[i, m, 0]) ** 2 + (rows - uv[i, m, 1]) ** 2
+                w = 0.9 * torch.exp(-d2 / (2 * sigma[i, m] ** 2))
+                clear = clear.index_put((torch.tensor(i),), torch.where(near, clear[i] * (1 - w), clear[i]))
+    want = 1 - clear
+    assert 0 < float(want.detach().sum()) < want.numel() and int((want > 0).sum()) < want.numel()
+    torch.testing.assert_close(soft, want, rtol=1e-12, atol=1e-14)
+    expected = torch.autograd.grad((want * weights).sum(), (uv, sigma))
+    for a, b in zip(got, expected, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-13)
+
+
 def test_soft_masks_rendered_a_few_images_at_a_time_equal_those_rendered_at_once(monkeypatch):
     # a call holds at most SPLAT_BATCH splat-pixel pairs (GPU memory): 7 images of 40 splats
     # reaching 6 pixels (13 x 13) go two at a time, and no pixel changes

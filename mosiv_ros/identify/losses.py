@@ -18,8 +18,9 @@ per object keeps one object's points from "explaining" another's at contact. A s
   for all objects, or one per object, as ``calibrated_splat_radius`` gives them)
   projected to pixels, the soft mask is A = 1 - prod(1 - 0.9 w_i), and the loss is the mean
   absolute difference to the observed mask over the pixels that show object k or background;
-  pixels of other objects are unknown for k (they may occlude it) and left out. Gradients come
-  from torch autograd; all frames of a window are rendered per view in one batch.
+  pixels of other objects are unknown for k (they may occlude it) and left out. The splats are
+  summed (as logs) and differentiated by Warp kernels, the rest by torch autograd; all frames of
+  a window are rendered per view in one batch.
 
 Two forms of the same terms: per frame in numpy on the CPU (``geometry_loss``, ``track_loss``,
 ``silhouette_losses``: KD-trees, the silhouettes in torch a batch of frames at a time), and as
@@ -35,6 +36,7 @@ users (``mosiv_ros.evaluate``), which use unsquared distances.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, fields
 
@@ -277,6 +279,22 @@ def _nearest_in_blocks(queries: wp.array2d(dtype=wp.vec3d), query_valid: wp.arra
     index[j, i] = lowest
 
 
+def _launch(kernel: wp.Kernel, dim: tuple[int, ...], device: torch.device,
+            arguments: Callable[[], list]) -> None:
+    """Launch one of this module's kernels on the tensors' ``device`` (in torch's stream on a GPU).
+
+    ``arguments()`` gives the kernel's arguments once Warp is loaded (``wp.from_torch`` needs it).
+    """
+    where = resolve_device("cpu" if device.type == "cpu" else f"cuda:{device.index or 0}")
+    load_modules(where, [__name__])
+    args = arguments()
+    if device.type == "cpu":
+        wp.launch(kernel, dim=dim, inputs=args, device=where)
+    else:
+        with wp.ScopedStream(wp.stream_from_torch(device)):
+            wp.launch(kernel, dim=dim, inputs=args, device=where)
+
+
 def nearest(queries: torch.Tensor, query_valid: torch.Tensor,
             targets: TargetBlocks) -> tuple[torch.Tensor, torch.Tensor]:
     """The exact nearest valid target of each valid query, for J jobs at once, on their device.
@@ -300,21 +318,15 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor,
     best = torch.empty((n_jobs, n), dtype=torch.float64, device=device)
     index = torch.empty((n_jobs, n), dtype=torch.long, device=device)
     if n_jobs and n:
-        where = resolve_device("cpu" if device.type == "cpu" else f"cuda:{device.index or 0}")
-        load_modules(where, [__name__])
-        args = [wp.from_torch(queries.contiguous(), dtype=wp.vec3d),
+        _launch(_nearest_in_blocks, (n_jobs, n), device, lambda: [
+                wp.from_torch(queries.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(query_valid.to(torch.uint8).contiguous()),
                 wp.from_torch(targets.points.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(targets.valid.to(torch.uint8).contiguous()),
                 wp.from_torch(targets.order.contiguous()), wp.from_torch(targets.lo.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(targets.hi.contiguous(), dtype=wp.vec3d),
                 wp.from_torch(targets.centroid.contiguous(), dtype=wp.vec3d),
-                wp.from_torch(best), wp.from_torch(index)]
-        if device.type == "cpu":
-            wp.launch(_nearest_in_blocks, dim=(n_jobs, n), inputs=args, device=where)
-        else:
-            with wp.ScopedStream(wp.stream_from_torch(device)):
-                wp.launch(_nearest_in_blocks, dim=(n_jobs, n), inputs=args, device=where)
+                wp.from_torch(best), wp.from_torch(index)])
     return torch.where(index >= 0, best, math.inf), index
 
 
@@ -438,29 +450,135 @@ def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarra
     return Terms(chamfer, total, track, silhouette)
 
 
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    return log1p(x);
+#else
+    return __builtin_log1p(x);
+#endif
+""")
+def _log1p(x: wp.float64) -> wp.float64:
+    """log(1 + x), accurate near x = 0 (C's and CUDA's ``log1p``)."""
+    ...
+
+
+@wp.func
+def _splat_weight(d2: wp.float64, sigma: wp.float64, opacity: wp.float64) -> wp.float64:
+    """The opacity-scaled Gaussian weight of a pixel at squared distance ``d2`` from a splat.
+
+    ``opacity`` (``SPLAT_OPACITY``) comes as an argument: a float constant in a kernel is a
+    float32, and 0.9 is not one exactly.
+    """
+    return opacity * wp.exp(-d2 / (wp.float64(2.0) * sigma * sigma))
+
+
+@wp.kernel(enable_backward=False)
+def _splat_log_clear(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
+                     valid: wp.array2d(dtype=wp.uint8), reach: int, height: int, width: int,
+                     opacity: wp.float64, total: wp.array2d(dtype=wp.float64)):
+    """One thread per (image, splat): log(1 - w) of each pixel of its footprint, added to the pixel.
+
+    The footprint: the (2 reach + 1)^2 pixels around the splat's rounded centre, rows outer;
+    on the CPU the threads and their pixels add in that order.
+    """
+    i, m = wp.tid()
+    if valid[i, m] == wp.uint8(0):
+        return
+    c = uv[i, m]
+    s = sigma[i, m]
+    bx = int(wp.rint(c[0]))
+    by = int(wp.rint(c[1]))
+    for a in range(-reach, reach + 1):
+        py = by + a
+        if py >= 0 and py < height:
+            for b in range(-reach, reach + 1):
+                px = bx + b
+                if px >= 0 and px < width:
+                    dx = wp.float64(px) - c[0]
+                    dy = wp.float64(py) - c[1]
+                    wp.atomic_add(total, i, py * width + px, _log1p(-_splat_weight(dx * dx + dy * dy, s, opacity)))
+
+
+@wp.kernel(enable_backward=False)
+def _splat_log_clear_adjoint(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
+                             valid: wp.array2d(dtype=wp.uint8), reach: int, height: int, width: int,
+                             opacity: wp.float64, adj_total: wp.array2d(dtype=wp.float64),
+                             adj_uv: wp.array2d(dtype=wp.vec2d), adj_sigma: wp.array2d(dtype=wp.float64)):
+    """``_splat_log_clear``'s adjoint: each splat's gradient from its footprint's pixels.
+
+    With l = log(1 - w), w = 0.9 exp(-d2 / (2 sigma^2)) and d2 = (px - u)^2 + (py - v)^2:
+    dl/dw = -1 / (1 - w), dw/du = w (px - u) / sigma^2, dw/dsigma = w d2 / sigma^3.
+    """
+    i, m = wp.tid()
+    if valid[i, m] == wp.uint8(0):
+        return
+    c = uv[i, m]
+    s = sigma[i, m]
+    bx = int(wp.rint(c[0]))
+    by = int(wp.rint(c[1]))
+    g_u = wp.float64(0.0)
+    g_v = wp.float64(0.0)
+    g_s = wp.float64(0.0)
+    for a in range(-reach, reach + 1):
+        py = by + a
+        if py >= 0 and py < height:
+            for b in range(-reach, reach + 1):
+                px = bx + b
+                if px >= 0 and px < width:
+                    dx = wp.float64(px) - c[0]
+                    dy = wp.float64(py) - c[1]
+                    d2 = dx * dx + dy * dy
+                    w = _splat_weight(d2, s, opacity)
+                    g = -adj_total[i, py * width + px] / (wp.float64(1.0) - w) * w / (s * s)
+                    g_u += g * dx
+                    g_v += g * dy
+                    g_s += g * d2 / s
+    adj_uv[i, m] = wp.vec2d(g_u, g_v)
+    adj_sigma[i, m] = g_s
+
+
+class _SplatSum(torch.autograd.Function):
+    """Per image the sum over splats of log(1 - w) at each pixel, (I, H W), by Warp kernels."""
+
+    @staticmethod
+    def forward(ctx, uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
+                height: int, width: int) -> torch.Tensor:
+        # detached: Warp reads the values only (the gradient is ``backward``'s)
+        uv, sigma = uv.detach().contiguous(), sigma.detach().contiguous()
+        valid = valid.to(torch.uint8).contiguous()
+        total = uv.new_zeros((uv.shape[0], height * width))
+        ctx.save_for_backward(uv, sigma, valid)
+        ctx.settings = (reach, height, width, SPLAT_OPACITY)
+        if total.numel() and uv.shape[1]:
+            _launch(_splat_log_clear, tuple(valid.shape), uv.device, lambda: [
+                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *ctx.settings,
+                wp.from_torch(total)])
+        return total
+
+    @staticmethod
+    def backward(ctx, adj_total: torch.Tensor):
+        uv, sigma, valid = ctx.saved_tensors
+        adj_uv, adj_sigma = torch.zeros_like(uv), torch.zeros_like(sigma)
+        if uv.shape[0] and uv.shape[1]:
+            _launch(_splat_log_clear_adjoint, tuple(valid.shape), uv.device, lambda: [
+                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *ctx.settings,
+                wp.from_torch(adj_total.contiguous()), wp.from_torch(adj_uv, dtype=wp.vec2d),
+                wp.from_torch(adj_sigma)])
+        return adj_uv, adj_sigma, None, None, None, None
+
+
 def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int, height: int,
                 width: int) -> torch.Tensor:
     """(I, H, W) soft masks A = 1 - prod_i (1 - opacity w_i(p)) of I images, Gaussian w_i.
 
     ``uv`` (I, M, 2) pixel positions, ``sigma`` (I, M) splat radii in pixels, ``valid`` (I, M)
     the particles that count (in front of the camera), ``reach`` the pixels a splat reaches
-    either way (3 sigma, ``_reach``).
+    either way (3 sigma, ``_reach``). The product is a sum of logs that Warp kernels add up
+    and differentiate (``_SplatSum``): a few launches whatever the splats, no splat-pixel
+    tensors.
     """
-    n_images = uv.shape[0]
-    offsets = torch.arange(-reach, reach + 1, dtype=uv.dtype, device=uv.device)
-    dy, dx = torch.meshgrid(offsets, offsets, indexing="ij")
-    base = torch.round(uv.detach())
-    px = base[..., 0, None] + dx.reshape(1, 1, -1)
-    py = base[..., 1, None] + dy.reshape(1, 1, -1)
-    inside = (px >= 0) & (px < width) & (py >= 0) & (py < height) & valid[..., None]
-    d2 = (px - uv[..., 0, None]) ** 2 + (py - uv[..., 1, None]) ** 2
-    w = SPLAT_OPACITY * torch.exp(-d2 / (2 * sigma[..., None] ** 2))
-    kept = inside.flatten().nonzero().squeeze(1)  # one read-back of the count on a GPU, not two
-    log_clear = torch.log1p(-w).flatten()[kept]
-    image = torch.arange(n_images, device=uv.device).reshape(-1, 1, 1)
-    index = (image * (height * width) + py * width + px).flatten()[kept].long()
-    total = torch.zeros(n_images * height * width, dtype=uv.dtype, device=uv.device)
-    return (1 - torch.exp(total.index_add(0, index, log_clear))).reshape(n_images, height, width)
+    total = _SplatSum.apply(uv.to(torch.float64), sigma.to(torch.float64), valid, reach, height, width)
+    return -torch.expm1(total).reshape(uv.shape[0], height, width)
 
 
 def _soft_masks_in_batches(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
@@ -468,9 +586,9 @@ def _soft_masks_in_batches(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.T
     """``_soft_masks`` of the I images a batch of at most ``SPLAT_BATCH`` splat-pixel pairs at a time.
 
     The chunks of ``_splat_chunks`` count a typical splat of 7 x 7 pixels per particle and image;
-    a splat reaches up to 17 x 17, so one call could hold 6x the pairs (a full-size suite scene,
-    six cameras at 256 x 192, peaked at 37.8 GB of GPU memory; 9.0 GB so batched). Each image is
-    rendered alone, so the batching changes no value.
+    a splat reaches up to 17 x 17, so one call could hold 6x the pairs, and the images of a call
+    (each H x W float64s with their gradients) grow with them. Each image is rendered alone, so
+    the batching changes no value.
     """
     pairs = uv.shape[1] * (2 * reach + 1) ** 2
     step = max(1, SPLAT_BATCH["cpu" if uv.device.type == "cpu" else "cuda"] // max(pairs, 1))
@@ -516,8 +634,9 @@ def torch_threads(device: str):
 
 SPLAT_BATCH = {"cpu": 1 << 18, "cuda": 1 << 25}
 """Splat-pixel pairs rendered in one batch: on a CPU about one frame of a few thousand
-particles (larger batches fall out of the cache: 20 frames at once took 5x as long as 20 one at
-a time), on a GPU every frame of a window (one frame at a time is launch overhead)."""
+particles, on a GPU every frame of a window (one frame at a time is launch overhead). The
+batches also decide which frames share a splat reach (the largest of a row's batch,
+``_splat_chunks``), and with it the loss's last digits."""
 
 
 def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[list[int], slice]]:
