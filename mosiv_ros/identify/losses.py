@@ -473,41 +473,18 @@ def _splat_weight(d2: wp.float64, sigma: wp.float64, opacity: wp.float64) -> wp.
 
 
 @wp.kernel(enable_backward=False)
-def _splat_log_clear(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
-                     valid: wp.array2d(dtype=wp.uint8), reach: int, height: int, width: int,
-                     opacity: wp.float64, total: wp.array2d(dtype=wp.float64)):
-    """One thread per (image, splat): log(1 - w) of each pixel of its footprint, added to the pixel.
+def _splats(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64), valid: wp.array2d(dtype=wp.uint8),
+            reach: int, height: int, width: int, opacity: wp.float64, adjoint: int,
+            total: wp.array2d(dtype=wp.float64), adj_uv: wp.array2d(dtype=wp.vec2d),
+            adj_sigma: wp.array2d(dtype=wp.float64)):
+    """One thread per (image, splat), over the pixels of its footprint (``_soft_masks``).
 
-    The footprint: the (2 reach + 1)^2 pixels around the splat's rounded centre, rows outer;
-    on the CPU the threads and their pixels add in that order.
-    """
-    i, m = wp.tid()
-    if valid[i, m] == wp.uint8(0):
-        return
-    c = uv[i, m]
-    s = sigma[i, m]
-    bx = int(wp.rint(c[0]))
-    by = int(wp.rint(c[1]))
-    for a in range(-reach, reach + 1):
-        py = by + a
-        if py >= 0 and py < height:
-            for b in range(-reach, reach + 1):
-                px = bx + b
-                if px >= 0 and px < width:
-                    dx = wp.float64(px) - c[0]
-                    dy = wp.float64(py) - c[1]
-                    wp.atomic_add(total, i, py * width + px, _log1p(-_splat_weight(dx * dx + dy * dy, s, opacity)))
-
-
-@wp.kernel(enable_backward=False)
-def _splat_log_clear_adjoint(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
-                             valid: wp.array2d(dtype=wp.uint8), reach: int, height: int, width: int,
-                             opacity: wp.float64, adj_total: wp.array2d(dtype=wp.float64),
-                             adj_uv: wp.array2d(dtype=wp.vec2d), adj_sigma: wp.array2d(dtype=wp.float64)):
-    """``_splat_log_clear``'s adjoint: each splat's gradient from its footprint's pixels.
-
-    With l = log(1 - w), w = 0.9 exp(-d2 / (2 sigma^2)) and d2 = (px - u)^2 + (py - v)^2:
-    dl/dw = -1 / (1 - w), dw/du = w (px - u) / sigma^2, dw/dsigma = w d2 / sigma^3.
+    The footprint: the (2 reach + 1)^2 pixels around the splat's rounded centre, rows outer.
+    Forward (``adjoint`` 0): adds log(1 - w) to each of them in ``total`` (on the CPU the
+    threads and their pixels add in that order). Adjoint (1): ``total`` holds the gradient of
+    the sums; writes the splat's. With l = log(1 - w), w = opacity exp(-d2 / (2 sigma^2)) and
+    d2 = (px - u)^2 + (py - v)^2: dl/dw = -1 / (1 - w), dw/du = w (px - u) / sigma^2,
+    dw/dsigma = w d2 / sigma^3.
     """
     i, m = wp.tid()
     if valid[i, m] == wp.uint8(0):
@@ -529,16 +506,20 @@ def _splat_log_clear_adjoint(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(d
                     dy = wp.float64(py) - c[1]
                     d2 = dx * dx + dy * dy
                     w = _splat_weight(d2, s, opacity)
-                    g = -adj_total[i, py * width + px] / (wp.float64(1.0) - w) * w / (s * s)
-                    g_u += g * dx
-                    g_v += g * dy
-                    g_s += g * d2 / s
-    adj_uv[i, m] = wp.vec2d(g_u, g_v)
-    adj_sigma[i, m] = g_s
+                    if adjoint == 0:
+                        wp.atomic_add(total, i, py * width + px, _log1p(-w))
+                    else:
+                        g = -total[i, py * width + px] / (wp.float64(1.0) - w) * w / (s * s)
+                        g_u += g * dx
+                        g_v += g * dy
+                        g_s += g * d2 / s
+    if adjoint != 0:
+        adj_uv[i, m] = wp.vec2d(g_u, g_v)
+        adj_sigma[i, m] = g_s
 
 
 class _SplatSum(torch.autograd.Function):
-    """Per image the sum over splats of log(1 - w) at each pixel, (I, H W), by Warp kernels."""
+    """Per image the sum over splats of log(1 - w) at each pixel, (I, H W), by ``_splats``."""
 
     @staticmethod
     def forward(ctx, uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
@@ -549,22 +530,25 @@ class _SplatSum(torch.autograd.Function):
         total = uv.new_zeros((uv.shape[0], height * width))
         ctx.save_for_backward(uv, sigma, valid)
         ctx.settings = (reach, height, width, SPLAT_OPACITY)
-        if total.numel() and uv.shape[1]:
-            _launch(_splat_log_clear, tuple(valid.shape), uv.device, lambda: [
-                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *ctx.settings,
-                wp.from_torch(total)])
+        _SplatSum.launch((uv, sigma, valid), ctx.settings, 0, total, uv.new_empty((0, 0, 2)), sigma.new_empty((0, 0)))
         return total
 
     @staticmethod
     def backward(ctx, adj_total: torch.Tensor):
         uv, sigma, valid = ctx.saved_tensors
         adj_uv, adj_sigma = torch.zeros_like(uv), torch.zeros_like(sigma)
-        if uv.shape[0] and uv.shape[1]:
-            _launch(_splat_log_clear_adjoint, tuple(valid.shape), uv.device, lambda: [
-                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *ctx.settings,
-                wp.from_torch(adj_total.contiguous()), wp.from_torch(adj_uv, dtype=wp.vec2d),
-                wp.from_torch(adj_sigma)])
+        _SplatSum.launch((uv, sigma, valid), ctx.settings, 1, adj_total.contiguous(), adj_uv, adj_sigma)
         return adj_uv, adj_sigma, None, None, None, None
+
+    @staticmethod
+    def launch(splats: tuple[torch.Tensor, ...], settings: tuple, adjoint: int, total: torch.Tensor,
+               adj_uv: torch.Tensor, adj_sigma: torch.Tensor) -> None:
+        """``_splats`` over ``splats`` (uv, sigma, valid) with ``settings`` (none: no launch)."""
+        uv, sigma, valid = splats
+        if uv.shape[0] and uv.shape[1] and total.numel():
+            _launch(_splats, tuple(valid.shape), uv.device, lambda: [
+                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *settings,
+                adjoint, wp.from_torch(total), wp.from_torch(adj_uv, dtype=wp.vec2d), wp.from_torch(adj_sigma)])
 
 
 def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int, height: int,
@@ -573,8 +557,8 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reac
 
     ``uv`` (I, M, 2) pixel positions, ``sigma`` (I, M) splat radii in pixels, ``valid`` (I, M)
     the particles that count (in front of the camera), ``reach`` the pixels a splat reaches
-    either way (3 sigma, ``_reach``). The product is a sum of logs that Warp kernels add up
-    and differentiate (``_SplatSum``): a few launches whatever the splats, no splat-pixel
+    either way (3 sigma, ``_reach``). The product is a sum of logs that a Warp kernel adds up
+    and differentiates (``_SplatSum``): a few launches whatever the splats, no splat-pixel
     tensors.
     """
     total = _SplatSum.apply(uv.to(torch.float64), sigma.to(torch.float64), valid, reach, height, width)
