@@ -267,15 +267,20 @@ def test_z_order_keys_interleave_the_cells_bits_and_put_invalid_points_last():
             assert keys[j, i] == (want if v[i] else 1 << 31)
 
 
-def test_target_blocks_of_some_frames_repeated_over_rows_are_those_built_for_them():
+def test_rows_of_queries_against_some_frames_blocks_find_what_each_rows_own_copy_finds():
+    # target blocks built once for every frame, a few frames of them taken, searched by three
+    # rows of queries: the same neighbours as blocks built for each row's own copy of the targets
     rng = np.random.default_rng(5)
     y, y_valid = padded([rng.normal(size=(n, 3)) for n in (70, 0, 130, 90, 20)], "cpu")
     rows, frames = 3, slice(1, 4)
-    built = TargetBlocks.of(y[frames].expand(rows, -1, -1, -1).reshape(-1, *y.shape[1:]),
-                            y_valid[frames].expand(rows, -1, -1).reshape(-1, y.shape[1]))
-    taken = TargetBlocks.of(y, y_valid).jobs(frames, rows)
-    for name in ("points", "valid", "order", "lo", "hi", "centroid"):
-        np.testing.assert_array_equal(getattr(taken, name).numpy(), getattr(built, name).numpy())
+    q, q_valid = padded([rng.normal(size=(n, 3)) for n in (40, 25, 60) * rows], "cpu")
+    shared = nearest(q, q_valid, TargetBlocks.of(y, y_valid).jobs(frames))
+    copied = nearest(q, q_valid, TargetBlocks.of(y[frames].repeat(rows, 1, 1), y_valid[frames].repeat(rows, 1)))
+    for a, b in zip(shared, copied, strict=True):
+        np.testing.assert_array_equal(a.numpy(), b.numpy())
+    assert np.isinf(shared[0][[0, 3, 6]].numpy()).all()  # frame 1 has no target, in every row
+    with pytest.raises(ValueError, match="no whole number of rows"):
+        nearest(q[:4], q_valid[:4], TargetBlocks.of(y, y_valid).jobs(frames))
 
 
 def test_the_tensor_chamfer_equals_the_kd_tree_chamfer_and_its_gradient():

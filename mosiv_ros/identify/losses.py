@@ -200,12 +200,9 @@ class TargetBlocks:
                                / count.clamp(min=1), 1e100)
         return cls(points, valid, order.view(n_jobs, blocks, size), lo, hi, centroid)
 
-    def jobs(self, index: slice, repeats: int = 1) -> TargetBlocks:
-        """The blocks of jobs ``index``, the whole run of them ``repeats`` times over."""
-        def taken(a: torch.Tensor) -> torch.Tensor:
-            a = a[index]
-            return a if repeats == 1 else a.expand(repeats, *a.shape).reshape(-1, *a.shape[1:])
-        return TargetBlocks(*(taken(getattr(self, f.name)) for f in fields(self)))
+    def jobs(self, index: slice) -> TargetBlocks:
+        """The blocks of jobs ``index`` (views, not copies)."""
+        return TargetBlocks(*(getattr(self, f.name)[index] for f in fields(self)))
 
 
 @wp.func_native("""
@@ -247,13 +244,18 @@ def _nearest_in_blocks(queries: wp.array2d(dtype=wp.vec3d), query_valid: wp.arra
                        order: wp.array3d(dtype=wp.int64), lo: wp.array2d(dtype=wp.vec3d),
                        hi: wp.array2d(dtype=wp.vec3d), centroid: wp.array2d(dtype=wp.vec3d),
                        best: wp.array2d(dtype=wp.float64), index: wp.array2d(dtype=wp.int64)):
-    """One thread per (job, query): ``nearest``'s search (its docstring), -1 where nothing was found."""
-    j, i = wp.tid()
+    """One thread per (job, query): ``nearest``'s search (its docstring), -1 where nothing was found.
+
+    Query job j searches target job j % (the target jobs), so that targets shared by several
+    rows of queries are held once.
+    """
+    q_job, i = wp.tid()
+    j = q_job % points.shape[0]
     found = wp.int32(0)
     near = wp.float64(0.0)
     lowest = wp.int64(-1)
-    if query_valid[j, i] != wp.uint8(0):
-        q = queries[j, i]
+    if query_valid[q_job, i] != wp.uint8(0):
+        q = queries[q_job, i]
         blocks = points.shape[1]
         first = wp.int32(0)
         closest = wp.float64(0.0)
@@ -275,8 +277,8 @@ def _nearest_in_blocks(queries: wp.array2d(dtype=wp.vec3d), query_valid: wp.arra
                             found = 1
                             near = d
                             lowest = t
-    best[j, i] = near
-    index[j, i] = lowest
+    best[q_job, i] = near
+    index[q_job, i] = lowest
 
 
 def _launch(kernel: wp.Kernel, dim: tuple[int, ...], device: torch.device,
@@ -300,8 +302,10 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor,
     """The exact nearest valid target of each valid query, for J jobs at once, on their device.
 
     ``queries`` (J, N, 3) float64, which are points ``query_valid`` (J, N) (the rest is
-    padding), and each job's targets sorted into blocks (``TargetBlocks``). Returns the squared distance
-    (J, N) and the index into ``targets`` (J, N) of each query's nearest target: the lowest index
+    padding), and the targets sorted into blocks (``TargetBlocks``) of J / R jobs: query job j
+    searches target job j % (J / R) (R rows of queries against the same targets, rows outer).
+    Returns the squared distance (J, N) and the index among its job's targets (J, N) of each
+    query's nearest target: the lowest index
     among equally near ones (a KD-tree takes any of them); inf and -1 for an invalid query or a
     job without a valid target. Distances are summed as the KD-tree sums them, (dx^2 + dy^2) +
     dz^2, each product and sum rounded on its own, so that the two find equally near targets.
@@ -315,6 +319,9 @@ def nearest(queries: torch.Tensor, query_valid: torch.Tensor,
     """
     n_jobs, n = query_valid.shape
     device = queries.device
+    target_jobs = targets.valid.shape[0]
+    if n_jobs and (not target_jobs or n_jobs % target_jobs):
+        raise ValueError(f"{n_jobs} query jobs are no whole number of rows of {target_jobs} target jobs")
     best = torch.empty((n_jobs, n), dtype=torch.float64, device=device)
     index = torch.empty((n_jobs, n), dtype=torch.long, device=device)
     if n_jobs and n:
@@ -373,7 +380,7 @@ def _chamfer_rows(x: torch.Tensor, visible: torch.Tensor, observed: ObservedTens
     y_valid = y_valid.expand(rows, *y_valid.shape).reshape(rows * n_frames, -1)
     values = chamfer_batch(x.reshape(rows * n_frames, n, 3), x_valid,
                            y.expand(rows, *y.shape).reshape(rows * n_frames, -1, 3), y_valid,
-                           observed.blocks[k].jobs(frames, rows))
+                           observed.blocks[k].jobs(frames))
     return values.view(rows, n_frames), (x_valid.any(dim=1) & y_valid.any(dim=1)).view(rows, n_frames)
 
 
