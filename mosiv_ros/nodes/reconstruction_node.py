@@ -292,7 +292,8 @@ class ReconstructionNode(Node):
             self.warned_held_ns = poses[-1][0]
             self.get_logger().warning(
                 f"stamp {stamp_ns} ns: no /gripper/pose at or after it within partial_set_timeout "
-                f"({timeout} s of the streams): the gripper held at its pose of stamp {poses[-1][0]} ns")
+                f"({timeout} s of the streams): the gripper held at its pose of stamp {poses[-1][0]} ns "
+                "(a pose stream slower than that needs a longer partial_set_timeout)")
         return gripper_at(poses, stamp_ns)
 
     def _uncalibrated_cameras(self, frame_set: FrameSet) -> list[str]:
