@@ -125,18 +125,6 @@ the targets) kept that lowest on elastic_on_plastic (a clay particle: 240 bounds
 distances, not 15,000 distances, to the clay's 15,000 observed points)."""
 
 
-def _squared(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Squared distances of broadcast points (..., 3), summed as the KD-tree sums them.
-
-    (dx dx + dy dy) + dz dz, one axis at a time ((...) temporaries, not (..., 3)).
-    """
-    total = None
-    for axis in range(3):
-        d = a[..., axis] - b[..., axis]
-        total = d * d if total is None else total + d * d
-    return total
-
-
 def _spread_bits() -> np.ndarray:
     """(1024,) each 10-bit value with its bits moved to every third bit (bit b to bit 3 b)."""
     values = np.arange(1024, dtype=np.int64)
@@ -216,7 +204,7 @@ class TargetBlocks:
 #endif
 """)
 def _rounded_squared(d: wp.vec3d) -> wp.float64:
-    """(dx dx + dy dy) + dz dz with every product and sum rounded on its own, as ``_squared`` sums.
+    """(dx dx + dy dy) + dz dz with every product and sum rounded on its own, as the KD-tree sums.
 
     Spelled out because a compiler may fuse a product into the next sum (a fused multiply-add,
     rounded once), which can break a tie the KD-tree and the torch sums see.
@@ -349,17 +337,40 @@ def chamfer_batch(x: torch.Tensor, x_valid: torch.Tensor, y: torch.Tensor,
     ``x`` (J, N, 3) and ``y`` (J, M, 3) float64 (N, M >= 1), padded, with which entries are
     points ``x_valid`` (J, N) and ``y_valid`` (J, M); ``y_blocks`` the ``y`` sorted into blocks
     if they are at hand (built here if not). The values are differentiable in ``x``
-    (autograd), each nearest neighbour held fixed as ``chamfer``'s gradient holds it; 0 where
-    either set is empty. Nearest neighbours by ``nearest``.
+    (``_Chamfer``), each nearest neighbour held fixed as ``chamfer``'s gradient holds it; 0
+    where either set is empty. Nearest neighbours by ``nearest``.
     """
-    with torch.no_grad():
-        _, to_y = nearest(x.detach(), x_valid, y_blocks or TargetBlocks.of(y, y_valid))
-        _, to_x = nearest(y, y_valid, TargetBlocks.of(x.detach(), x_valid))
-    nx, ny = x_valid.sum(dim=1), y_valid.sum(dim=1)
-    both = ((nx > 0) & (ny > 0))[:, None]
-    there = torch.where(x_valid & both, _squared(x, _take(y, to_y)), 0.0).sum(dim=1)
-    back = torch.where(y_valid & both, _squared(y, _take(x, to_x)), 0.0).sum(dim=1)
-    return there / nx.clamp(min=1) + back / ny.clamp(min=1)
+    return _Chamfer.apply(x, x_valid, y, y_valid, y_blocks or TargetBlocks.of(y, y_valid))
+
+
+class _Chamfer(torch.autograd.Function):
+    """``chamfer_batch``: the squared distances are ``nearest``'s, the gradient written out.
+
+    d/dx_i of |x_i - y_nn(i)|^2 is 2 (x_i - y_nn(i)); of |y_k - x_nn(k)|^2, -2 (y_k - x_nn(k)),
+    added to the x_nn(k) it holds; the products run in the order autograd takes through the
+    distances' sums (dx dx + dy dy) + dz dz, so the bits are autograd's.
+    """
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, x_valid: torch.Tensor, y: torch.Tensor, y_valid: torch.Tensor,
+                y_blocks: TargetBlocks) -> torch.Tensor:
+        x = x.detach()
+        there, to_y = nearest(x, x_valid, y_blocks)
+        back, to_x = nearest(y, y_valid, TargetBlocks.of(x, x_valid))
+        nx, ny = x_valid.sum(dim=1), y_valid.sum(dim=1)
+        both = ((nx > 0) & (ny > 0))[:, None]
+        x_on, y_on = x_valid & both, y_valid & both
+        ctx.save_for_backward(x, y, to_y, to_x, x_on, y_on, nx.clamp(min=1), ny.clamp(min=1))
+        return (torch.where(x_on, there, 0.0).sum(dim=1) / nx.clamp(min=1)
+                + torch.where(y_on, back, 0.0).sum(dim=1) / ny.clamp(min=1))
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        x, y, to_y, to_x, x_on, y_on, nx, ny = ctx.saved_tensors
+        there = torch.where(x_on[..., None], (grad / nx)[:, None, None] * (x - _take(y, to_y)) * 2, 0.0)
+        back = torch.where(y_on[..., None], (grad / ny)[:, None, None] * (y - _take(x, to_x)) * 2, 0.0)
+        grad_x = there + torch.zeros_like(x).scatter_add(1, to_x.clamp(min=0)[..., None].expand(-1, -1, 3), -back)
+        return grad_x, None, None, None, None
 
 
 def _chamfer_rows(x: torch.Tensor, visible: torch.Tensor, observed: ObservedTensors, k: int,
