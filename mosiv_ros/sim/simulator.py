@@ -1265,8 +1265,13 @@ class Simulator:
         for array in adjoint.arrays:
             array.zero_()
 
+        # every frame's dL/dx uploaded at once; each frame's copied into ``seed`` on the device
+        # (a copy from the host would wait there for the frame before it)
+        seeds = wp.array(np.ascontiguousarray(self._inward(dL_dx[1:], axis=2)).reshape(-1, 3), dtype=wp.vec3,
+                         device=self.device)
+
         def seeded(index: int) -> None:
-            seed.assign(np.ascontiguousarray(self._inward(dL_dx[index + 1])).reshape(-1, 3))
+            wp.copy(seed, seeds, src_offset=index * B * N, count=B * N)
 
         frames = self._tape_buffers_for(n_sub)
 
