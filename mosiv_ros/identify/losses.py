@@ -25,9 +25,9 @@ per object keeps one object's points from "explaining" another's at contact. A s
 Two forms of the same terms: per frame in numpy on the CPU (``geometry_loss``, ``track_loss``,
 ``silhouette_losses``: KD-trees, the silhouettes in torch a batch of frames at a time), and as
 torch tensors on one device for many rows (parameter sets) and frames at once
-(``tensor_terms``: exact nearest neighbours by ``nearest``, gradients by autograd), which the
-identifier uses on a GPU. The two agree to float64 rounding, but for which of several equally
-near neighbours takes a tie.
+(``tensor_terms``: exact nearest neighbours by ``nearest``, gradients through torch's autograd,
+the Chamfer's and the splats' written out), which the identifier uses on a GPU. The two agree
+to float64 rounding, but for which of several equally near neighbours takes a tie.
 
 What it is for: the identifier's objective. What it is not for: evaluation metrics reported to
 users (``mosiv_ros.evaluate``), which use unsquared distances.
