@@ -125,13 +125,16 @@ the targets) kept that lowest on elastic_on_plastic (a clay particle: 240 bounds
 distances, not 15,000 distances, to the clay's 15,000 observed points)."""
 
 
-def _spread_bits() -> np.ndarray:
-    """(1024,) each 10-bit value with its bits moved to every third bit (bit b to bit 3 b)."""
-    values = np.arange(1024, dtype=np.int64)
-    return sum(((values >> b) & 1) << (3 * b) for b in range(10))
+_SPREAD: dict[torch.device, torch.Tensor] = {}
+"""By device, (1024,) each 10-bit value with its bits moved to every third bit (bit b to 3 b)."""
 
 
-_SPREAD = _spread_bits()
+def _spread_bits(device: torch.device) -> torch.Tensor:
+    """``_SPREAD`` on ``device``, made there once (an upload waits for the device)."""
+    if device not in _SPREAD:
+        values = np.arange(1024, dtype=np.int64)
+        _SPREAD[device] = torch.as_tensor(sum(((values >> b) & 1) << (3 * b) for b in range(10)), device=device)
+    return _SPREAD[device]
 
 
 def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -140,12 +143,11 @@ def _morton(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     On a 1024^3 lattice over the bounding box of each job's valid points; each axis's cell
     spread to every third bit by a table (``_SPREAD``), x lowest.
     """
-    inf = torch.tensor(math.inf, dtype=points.dtype, device=points.device)
-    lo = torch.where(valid[..., None], points, inf).amin(dim=1, keepdim=True)
-    hi = torch.where(valid[..., None], points, -inf).amax(dim=1, keepdim=True)
+    lo = torch.where(valid[..., None], points, math.inf).amin(dim=1, keepdim=True)
+    hi = torch.where(valid[..., None], points, -math.inf).amax(dim=1, keepdim=True)
     scaled = (points - lo) / (hi - lo).clamp(min=1e-12) * 1023
     cell = torch.where(valid[..., None], scaled, 0.0).clamp(0, 1023).long()
-    spread = torch.as_tensor(_SPREAD, device=points.device)[cell]
+    spread = _spread_bits(points.device)[cell]
     key = spread[..., 0] | (spread[..., 1] << 1) | (spread[..., 2] << 2)
     return torch.where(valid, key, 1 << 31)
 
