@@ -1215,13 +1215,14 @@ class Simulator:
                 start, state = self._kept_states(kept[frame], work, n_sub)
                 if frame == 0:
                     checkpoints.append(start)
-            elif own_steps:  # each row's own dt and substeps are read from the device
-                self._launch(("own", n_sub, current), partial(self._frame, states, current, grid, n_sub, 0.0, True))
-                current = (current + n_sub) % 2
             else:
-                self._collider_poses(start_frame + frame, n_sub, dt)
-                self._launch(("frame", n_sub, dt, current),
-                             partial(self._frame, states, current, grid, n_sub, dt))
+                if own_steps:  # each row's own dt and substeps are read from the device
+                    self._launch(("own", n_sub, current),
+                                 partial(self._frame, states, current, grid, n_sub, 0.0, True))
+                else:
+                    self._collider_poses(start_frame + frame, n_sub, dt)
+                    self._launch(("frame", n_sub, dt, current),
+                                 partial(self._frame, states, current, grid, n_sub, dt))
                 current = (current + n_sub) % 2
                 state = states[current]
             if check:
