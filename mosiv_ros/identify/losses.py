@@ -748,7 +748,7 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
         for g, (mine, ids) in enumerate(zip(members, groups, strict=True)):
             target, known, pixels = masks.shown(v, tuple(ids), shown)
             for value in sorted(set(reach[g]) - {0}):  # rows of one reach together (no particle in view: 0)
-                same = [r for r, v in enumerate(reach[g]) if v == value]
+                same = [r for r, row_reach in enumerate(reach[g]) if row_reach == value]
                 pick = slice(None) if len(same) == rows else torch.as_tensor(same, device=device)
                 soft = _soft_masks_in_batches(uv[pick][:, :, mine].flatten(0, 1), sigma[pick][:, :, mine].flatten(0, 1),
                                               valid[g][pick].flatten(0, 1), value, view.height, view.width)
@@ -788,9 +788,8 @@ def calibrated_splat_radius(x: np.ndarray, object_id: int, views: list[View], ma
     placed = []
     for v, view in enumerate(shown):
         uv, z, front = _splat_centres(x, tensors.world_to_optical[v], tensors.K[v])
-        target = (tensors.masks[v][0] == object_id).to(x.dtype)
-        known = (target > 0) | (tensors.masks[v][0] == 0)
-        placed.append((view, tensors.K[v][0, 0], uv[front], z[front], target, known))
+        target, known, _ = tensors.shown(v, (object_id,), slice(0, 1))
+        placed.append((view, tensors.K[v][0, 0], uv[front], z[front], target[0], known[0]))
 
     def excess(radius: float) -> float:
         total = 0.0

@@ -154,7 +154,7 @@ class MaskTensors:
     K: list[torch.Tensor]
     _groups: dict = field(default_factory=dict, repr=False)
 
-    def shown(self, view: int, ids: tuple[int, ...], frames: torch.Tensor
+    def shown(self, view: int, ids: tuple[int, ...], frames: torch.Tensor | slice
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What a silhouette of objects ``ids`` in ``view`` is compared with at ``frames``.
 
