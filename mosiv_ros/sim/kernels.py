@@ -441,7 +441,7 @@ def grid_update(
     index = field_node(wp.tid(), box_lo, box_dims, dims)
     m = grid_m[index]
     if m <= 0.0:
-        return  # no particle's stencil reads an empty field node; grid_v was zeroed
+        return  # no particle's stencil reads an empty field node; grid_v was zeroed (or is grid_p, zero here)
     batch = index // (n_objects * n_nodes)
     k = (index // n_nodes) % n_objects
     node = index % n_nodes

@@ -292,6 +292,13 @@ class _Grid:
     the gradients of what these read. Outside it the arrays and their gradients stay zero, so on
     the CPU ``zero`` and ``zero_grad`` clear that box only (about a tenth of the grid around a
     scene); elsewhere the box is the whole grid.
+
+    Without gradients the velocities ``v`` are the momenta ``p``, overwritten: the grid update
+    reads a node's momentum in the thread that writes its velocity, and nothing reads momenta
+    after it. At a node without mass the momentum is zero too (every particle adds its mass and
+    momentum with the same weight), so G2P reads what a zeroed ``v`` held, and a substep clears
+    a third less memory (on a GPU a search batch's grid is mostly empty nodes: the clearing was
+    a sixth of its substep). A tape needs the momenta for the adjoint, so there ``v`` has its own.
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
@@ -300,8 +307,10 @@ class _Grid:
         # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
         (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
          self.present_mu), self._values, self._grads = _arrays(
-            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated), device, requires_grad,
-            memory)
+            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad), device,
+            requires_grad, memory)
+        if not requires_grad:
+            self.v = self.p
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
         # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
@@ -310,12 +319,17 @@ class _Grid:
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-              stress: bool, accelerated: bool) -> list[tuple[int, type]]:
-        """The arrays' sizes and types (accelerations and stresses only where an effect adds them)."""
+              stress: bool, accelerated: bool, velocities: bool) -> list[tuple[int, type]]:
+        """The arrays' sizes and types.
+
+        Accelerations and stresses only where an effect adds them, velocities apart from the
+        momenta only if ``velocities``.
+        """
         n_nodes = int(np.prod(dims))
         n_grid = n_batch * n_objects * n_nodes
         n_contact = n_batch * n_nodes if n_objects > 1 else 1
-        return [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3), (n_grid, wp.vec3),
+        return [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3),
+                (n_grid if velocities else 0, wp.vec3),
                 (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
                 (n_contact, float)]
 
@@ -328,7 +342,7 @@ class _Grid:
     def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
         """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
         if self._cpu:
-            self._zero(self.tau, [self.m, self.p, self.a, self.v],
+            self._zero(self.tau, [self.m, self.p, self.a] + ([self.v] if self.v is not self.p else []),
                        [self.present_m, self.present_p, self.present_mu])
         else:
             self._values.zero()
@@ -1333,7 +1347,7 @@ class Simulator:
         B, total, d = self.n_batch, self.n_batch * self.n_particles, self.device
         state_bytes = _Arena.offsets(_State.specs(total))[-1]
         grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
-                                                self._accelerated))[-1]
+                                                self._accelerated, True))[-1]
         # the arenas' sizes are multiples of ALIGN: in the frame's arenas they lie back to back
         specs = [(state_bytes // 4, wp.float32), (grid_bytes // 4, wp.float32)] * capacity + [
             (state_bytes // 4, wp.float32)]
