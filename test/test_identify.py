@@ -172,6 +172,43 @@ def test_silhouette_treats_pixels_of_another_object_as_unknown():
     assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
 
 
+def test_views_of_two_sizes_and_two_objects_render_in_one_batch_as_each_view_and_object_alone():
+    # one launch renders every view, object and frame; an image sees only its own view's size
+    # and its own object's splats, and a frame weighs the views that have its mask
+    top = _camera_looking_down()
+    T = np.eye(4)
+    T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    T[:3, 3] = [0.01, 0.0, 0.8]
+    low = View("low", np.array([[120.0, 0, 40], [0, 120.0, 30], [0, 0, 1]]), T, 80, 60)
+    x = RNG.uniform(-0.04, 0.04, size=(40, 3))
+    index = np.repeat([0, 1], 20)
+    masks = {"top": np.zeros((48, 64), dtype=np.uint16), "low": np.zeros((60, 80), dtype=np.uint16)}
+    masks["top"][18:26, 20:32], masks["top"][22:32, 30:44] = 1, 2
+    masks["low"][20:34, 24:40], masks["low"][28:42, 38:56] = 1, 2
+    frames = np.stack([x, x])  # the second frame has only the top view's mask
+    both = [masks, {"top": masks["top"]}]
+    per = silhouette_object_losses(frames, index, [1, 2], [top, low], both, 0.01)
+    top_alone = silhouette_object_losses(frames, index, [1, 2], [top], [masks, masks], 0.01)  # 2 frames of it
+    low_alone = silhouette_object_losses(frames, index, [1, 2], [low], [masks, {}], 0.01)  # 1 frame
+    assert np.all(top_alone > 0) and np.all(low_alone > 0)
+    np.testing.assert_allclose(per, 0.75 * top_alone + 0.5 * low_alone, rtol=1e-12)
+    for k in range(2):  # an object's loss without the other object's particles
+        mine = frames[:, index == k]
+        alone = silhouette_object_losses(mine, np.zeros(20, dtype=int), [k + 1], [top, low], both, 0.01)
+        assert alone[0] == pytest.approx(per[k], rel=1e-12)
+    total, grad = losses.silhouette_losses(frames, index, [1, 2], [top, low], both, 0.01)
+    assert total == pytest.approx(per.sum(), rel=1e-12) and np.all(np.isfinite(grad)) and np.any(grad != 0)
+    # the wider view's image against its soft mask rendered alone, at its own size
+    uv, z = low.project(x[index == 0])
+    sigma = np.maximum(120.0 * 0.01 / z, 0.5)
+    reach = min(max(int(np.ceil(3 * sigma.max())), 1), 8)
+    soft = losses._soft_masks(torch.as_tensor(uv[None]), torch.as_tensor(sigma[None]),
+                              torch.ones((1, 20), dtype=torch.bool), reach, 60, 80)[0].numpy()
+    target = masks["low"] == 1
+    known = target | (masks["low"] == 0)
+    assert low_alone[0] == pytest.approx((np.abs(soft - target) * known).sum() / known.sum(), rel=1e-12)
+
+
 def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprint():
     # the kernels against the definition: per pixel 1 - prod (1 - 0.9 w_i) over the valid splats
     # whose (2 reach + 1)^2 footprint around their rounded centre holds it; the gradient against
@@ -200,22 +237,6 @@ def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprin
     expected = torch.autograd.grad((want * weights).sum(), (uv, sigma))
     for a, b in zip(got, expected, strict=True):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-13)
-
-
-def test_soft_masks_rendered_a_few_images_at_a_time_equal_those_rendered_at_once(monkeypatch):
-    # a call holds at most SPLAT_BATCH splat-pixel pairs (GPU memory): 7 images of 40 splats
-    # reaching 6 pixels (13 x 13) go two at a time, and no pixel changes
-    uv = torch.tensor(RNG.uniform(-5, 70, size=(7, 40, 2)))
-    sigma = torch.tensor(RNG.uniform(0.5, 2.0, size=(7, 40)))
-    valid = torch.tensor(RNG.random((7, 40)) > 0.2)
-    whole = losses._soft_masks(uv, sigma, valid, 6, 48, 64)
-    assert 0 < float(whole.sum()) < whole.numel()
-    monkeypatch.setitem(losses.SPLAT_BATCH, "cpu", 2 * 40 * 13**2)
-    calls, render = [], losses._soft_masks
-    monkeypatch.setattr(losses, "_soft_masks", lambda uv, *rest: calls.append(len(uv)) or render(uv, *rest))
-    batched = losses._soft_masks_in_batches(uv, sigma, valid, 6, 48, 64)
-    assert calls == [2, 2, 2, 1]
-    assert torch.equal(batched, whole)
 
 
 def _brute_squared(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -19,8 +19,8 @@ per object keeps one object's points from "explaining" another's at contact. A s
   projected to pixels, the soft mask is A = 1 - prod(1 - 0.9 w_i), and the loss is the mean
   absolute difference to the observed mask over the pixels that show object k or background;
   pixels of other objects are unknown for k (they may occlude it) and left out. The splats are
-  summed (as logs) and differentiated by Warp kernels, the rest by torch autograd; all frames of
-  a window are rendered per view in one batch.
+  summed (as logs) and differentiated by a Warp kernel, the rest by torch autograd; all views,
+  objects and frames of a window are rendered in one batch.
 
 Two forms of the same terms: per frame in numpy on the CPU (``geometry_loss``, ``track_loss``,
 ``silhouette_losses``: KD-trees, the silhouettes in torch a batch of frames at a time), and as
@@ -494,21 +494,28 @@ def _splat_weight(d2: wp.float64, sigma: wp.float64, opacity: wp.float64) -> wp.
 
 @wp.kernel(enable_backward=False)
 def _splats(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64), valid: wp.array2d(dtype=wp.uint8),
-            reach: int, height: int, width: int, opacity: wp.float64, adjoint: int,
-            total: wp.array2d(dtype=wp.float64), adj_uv: wp.array2d(dtype=wp.vec2d),
+            group: wp.array(dtype=wp.int32), groups: int, reach: wp.array(dtype=wp.int32),
+            height: wp.array(dtype=wp.int32), width: wp.array(dtype=wp.int32), opacity: wp.float64,
+            adjoint: int, total: wp.array2d(dtype=wp.float64), adj_uv: wp.array2d(dtype=wp.vec2d),
             adj_sigma: wp.array2d(dtype=wp.float64)):
-    """One thread per (image, splat), over the pixels of its footprint (``_soft_masks``).
+    """One thread per (image of splats, splat), over the pixels of its footprint (``_SplatSum``).
 
-    The footprint: the (2 reach + 1)^2 pixels around the splat's rounded centre, rows outer.
-    Forward (``adjoint`` 0): adds log(1 - w) to each of them in ``total`` (on the CPU the
-    threads and their pixels add in that order). Adjoint (1): ``total`` holds the gradient of
-    the sums; writes the splat's. With l = log(1 - w), w = opacity exp(-d2 / (2 sigma^2)) and
-    d2 = (px - u)^2 + (py - v)^2: dl/dw = -1 / (1 - w), dw/du = w (px - u) / sigma^2,
-    dw/dsigma = w d2 / sigma^3.
+    Splat m of splat image i renders into image i G + group[m] (G = ``groups``), of
+    ``height[i]`` x ``width[i]`` pixels (row-major, at the start of its row of ``total``). The
+    footprint: the (2 r + 1)^2 pixels around the splat's rounded centre, rows outer, with r the
+    image's ``reach``. Forward (``adjoint`` 0): adds log(1 - w) to each of them in ``total`` (on
+    the CPU the threads and their pixels add in that order, so each image's sums are those of
+    its splats alone). Adjoint (1): ``total`` holds the gradient of the sums; writes the
+    splat's. With l = log(1 - w), w = opacity exp(-d2 / (2 sigma^2)) and d2 = (px - u)^2 +
+    (py - v)^2: dl/dw = -1 / (1 - w), dw/du = w (px - u) / sigma^2, dw/dsigma = w d2 / sigma^3.
     """
     i, m = wp.tid()
     if valid[i, m] == wp.uint8(0):
         return
+    image = i * groups + int(group[m])
+    r = int(reach[image])
+    h = int(height[i])
+    w_px = int(width[i])
     c = uv[i, m]
     s = sigma[i, m]
     bx = int(wp.rint(c[0]))
@@ -516,20 +523,20 @@ def _splats(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
     g_u = wp.float64(0.0)
     g_v = wp.float64(0.0)
     g_s = wp.float64(0.0)
-    for a in range(-reach, reach + 1):
+    for a in range(-r, r + 1):
         py = by + a
-        if py >= 0 and py < height:
-            for b in range(-reach, reach + 1):
+        if py >= 0 and py < h:
+            for b in range(-r, r + 1):
                 px = bx + b
-                if px >= 0 and px < width:
+                if px >= 0 and px < w_px:
                     dx = wp.float64(px) - c[0]
                     dy = wp.float64(py) - c[1]
                     d2 = dx * dx + dy * dy
                     w = _splat_weight(d2, s, opacity)
                     if adjoint == 0:
-                        wp.atomic_add(total, i, py * width + px, _log1p(-w))
+                        wp.atomic_add(total, image, py * w_px + px, _log1p(-w))
                     else:
-                        g = -total[i, py * width + px] / (wp.float64(1.0) - w) * w / (s * s)
+                        g = -total[image, py * w_px + px] / (wp.float64(1.0) - w) * w / (s * s)
                         g_u += g * dx
                         g_v += g * dy
                         g_s += g * d2 / s
@@ -538,37 +545,55 @@ def _splats(uv: wp.array2d(dtype=wp.vec2d), sigma: wp.array2d(dtype=wp.float64),
         adj_sigma[i, m] = g_s
 
 
+@dataclass(frozen=True)
+class _Canvas:
+    """Where ``_splats`` renders, as integer tensors (int32) on the splats' device.
+
+    Splat m of splat image i goes into image i G + ``group[m]`` (G = ``groups``; the images are
+    (I G, ``stride``)) of ``height[i]`` x ``width[i]`` pixels, reaching ``reach[i G + g]``
+    pixels either way.
+    """
+
+    group: torch.Tensor
+    groups: int
+    reach: torch.Tensor
+    height: torch.Tensor
+    width: torch.Tensor
+    stride: int
+
+
 class _SplatSum(torch.autograd.Function):
-    """Per image the sum over splats of log(1 - w) at each pixel, (I, H W), by ``_splats``."""
+    """Per image the sum over splats of log(1 - w) at each pixel, (I G, stride), by ``_splats``."""
 
     @staticmethod
-    def forward(ctx, uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
-                height: int, width: int) -> torch.Tensor:
+    def forward(ctx, uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, canvas: _Canvas) -> torch.Tensor:
         # detached: Warp reads the values only (the gradient is ``backward``'s)
         uv, sigma = uv.detach().contiguous(), sigma.detach().contiguous()
         valid = valid.to(torch.uint8).contiguous()
-        total = uv.new_zeros((uv.shape[0], height * width))
+        total = uv.new_zeros((uv.shape[0] * canvas.groups, canvas.stride))
         ctx.save_for_backward(uv, sigma, valid)
-        ctx.settings = (reach, height, width, SPLAT_OPACITY)
-        _SplatSum.launch((uv, sigma, valid), ctx.settings, 0, total, uv.new_empty((0, 0, 2)), sigma.new_empty((0, 0)))
+        ctx.canvas = canvas
+        _SplatSum.launch((uv, sigma, valid), canvas, 0, total, uv.new_empty((0, 0, 2)), sigma.new_empty((0, 0)))
         return total
 
     @staticmethod
     def backward(ctx, adj_total: torch.Tensor):
         uv, sigma, valid = ctx.saved_tensors
         adj_uv, adj_sigma = torch.zeros_like(uv), torch.zeros_like(sigma)
-        _SplatSum.launch((uv, sigma, valid), ctx.settings, 1, adj_total.contiguous(), adj_uv, adj_sigma)
-        return adj_uv, adj_sigma, None, None, None, None
+        _SplatSum.launch((uv, sigma, valid), ctx.canvas, 1, adj_total.contiguous(), adj_uv, adj_sigma)
+        return adj_uv, adj_sigma, None, None
 
     @staticmethod
-    def launch(splats: tuple[torch.Tensor, ...], settings: tuple, adjoint: int, total: torch.Tensor,
+    def launch(splats: tuple[torch.Tensor, ...], canvas: _Canvas, adjoint: int, total: torch.Tensor,
                adj_uv: torch.Tensor, adj_sigma: torch.Tensor) -> None:
-        """``_splats`` over ``splats`` (uv, sigma, valid) with ``settings`` (none: no launch)."""
+        """``_splats`` over ``splats`` (uv, sigma, valid) onto ``canvas`` (none: no launch)."""
         uv, sigma, valid = splats
         if uv.shape[0] and uv.shape[1] and total.numel():
             _launch(_splats, tuple(valid.shape), uv.device, lambda: [
-                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid), *settings,
-                adjoint, wp.from_torch(total), wp.from_torch(adj_uv, dtype=wp.vec2d), wp.from_torch(adj_sigma)])
+                wp.from_torch(uv, dtype=wp.vec2d), wp.from_torch(sigma), wp.from_torch(valid),
+                wp.from_torch(canvas.group), canvas.groups, wp.from_torch(canvas.reach),
+                wp.from_torch(canvas.height), wp.from_torch(canvas.width), SPLAT_OPACITY, adjoint,
+                wp.from_torch(total), wp.from_torch(adj_uv, dtype=wp.vec2d), wp.from_torch(adj_sigma)])
 
 
 def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int, height: int,
@@ -578,44 +603,21 @@ def _soft_masks(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reac
     ``uv`` (I, M, 2) pixel positions, ``sigma`` (I, M) splat radii in pixels, ``valid`` (I, M)
     the particles that count (in front of the camera), ``reach`` the pixels a splat reaches
     either way (3 sigma, ``_reach``). The product is a sum of logs that a Warp kernel adds up
-    and differentiates (``_SplatSum``): a few launches whatever the splats, no splat-pixel
-    tensors.
+    and differentiates (``_SplatSum``; ``_silhouette_batch`` renders many views and objects at
+    once the same way): one launch whatever the splats, no splat-pixel tensors.
     """
-    total = _SplatSum.apply(uv.to(torch.float64), sigma.to(torch.float64), valid, reach, height, width)
-    return -torch.expm1(total).reshape(uv.shape[0], height, width)
+    device, images = uv.device, uv.shape[0]
+    canvas = _Canvas(torch.zeros(uv.shape[1], dtype=torch.int32, device=device), 1,
+                     torch.full((images,), reach, dtype=torch.int32, device=device),
+                     torch.full((images,), height, dtype=torch.int32, device=device),
+                     torch.full((images,), width, dtype=torch.int32, device=device), height * width)
+    total = _SplatSum.apply(uv.to(torch.float64), sigma.to(torch.float64), valid, canvas)
+    return -torch.expm1(total).reshape(images, height, width)
 
 
-def _soft_masks_in_batches(uv: torch.Tensor, sigma: torch.Tensor, valid: torch.Tensor, reach: int,
-                           height: int, width: int) -> torch.Tensor:
-    """``_soft_masks`` of the I images a batch of at most ``SPLAT_BATCH`` splat-pixel pairs at a time.
-
-    The chunks of ``_splat_chunks`` count a typical splat of 7 x 7 pixels per particle and image;
-    a splat reaches up to 17 x 17, so one call could hold 6x the pairs, and the images of a call
-    (each H x W float64s with their gradients) grow with them. Each image is rendered alone, so
-    the batching changes no value.
-    """
-    pairs = uv.shape[1] * (2 * reach + 1) ** 2
-    step = max(1, SPLAT_BATCH["cpu" if uv.device.type == "cpu" else "cuda"] // max(pairs, 1))
-    if step >= uv.shape[0]:
-        return _soft_masks(uv, sigma, valid, reach, height, width)
-    return torch.cat([_soft_masks(uv[i:i + step], sigma[i:i + step], valid[i:i + step], reach, height, width)
-                      for i in range(0, uv.shape[0], step)])
-
-
-def _reach(sigma: torch.Tensor, valid: torch.Tensor) -> list[int]:
-    """The pixels a splat reaches either way in each row's images (R,); 0 for a row with none.
-
-    3 of the largest ``sigma`` (R, F, M) of the row's ``valid`` particles, rounded up, 1 to 8.
-    """
-    return _reach_of([sigma], [valid])[0]
-
-
-def _reach_of(sigmas: list[torch.Tensor], valids: list[torch.Tensor]) -> list[list[int]]:
-    """``_reach`` of several groups of particles (each (R, F, M_g)), read back at once."""
-    largest = torch.stack([torch.where(valid, sigma.detach(), -math.inf).amax(dim=(1, 2))
-                           for sigma, valid in zip(sigmas, valids, strict=True)])
-    reach = torch.where(largest > -math.inf, torch.clamp(torch.ceil(3 * largest), 1, 8), 0.0)
-    return [[int(r) for r in group] for group in reach.tolist()]
+def _reach(sigma: torch.Tensor) -> torch.Tensor:
+    """The pixels splats of radii ``sigma`` reach either way: 3 sigma rounded up, 1 to 8; 0 for -inf (none)."""
+    return torch.where(sigma > -math.inf, torch.clamp(torch.ceil(3 * sigma), 1, 8), 0.0).to(torch.int32)
 
 
 @contextmanager
@@ -637,10 +639,10 @@ def torch_threads(device: str):
 
 
 SPLAT_BATCH = {"cpu": 1 << 18, "cuda": 1 << 25}
-"""Splat-pixel pairs rendered in one batch: on a CPU about one frame of a few thousand
-particles, on a GPU every frame of a window (one frame at a time is launch overhead). The
-batches also decide which frames share a splat reach (the largest of a row's batch,
-``_splat_chunks``), and with it the loss's last digits."""
+"""Splat-pixel pairs rendered in one batch, per view: on a CPU about one frame of a few
+thousand particles, on a GPU every frame of a window (one frame at a time is launch overhead).
+The batches also decide which frames share a splat reach (that of the largest of an object's
+splats in a view over a row's batch, ``_splat_chunks``), and with it the loss's last digits."""
 
 
 def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[list[int], slice]]:
@@ -649,7 +651,7 @@ def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[l
     ``counts`` the particles each row renders. A row whose frames fit a batch is rendered whole,
     with as many such rows as fit; another row alone, a batch of frames at a time. A row is cut
     the same way whatever rows share its batches, so that its loss does not depend on them (a
-    splat's reach is the largest of a row's batch, ``_reach``).
+    splat's reach is set by the largest of its row's batch, ``_silhouette_batch``).
     """
     budget = SPLAT_BATCH["cpu" if device == "cpu" else "cuda"]
     steps = [max(1, budget // (max(n, 1) * (2 * 3 + 1) ** 2)) for n in counts]  # 3-pixel splats typical
@@ -706,14 +708,17 @@ def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
 
 def _splat_centres(x: torch.Tensor, world_to_optical: torch.Tensor,
                    K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pixel positions (..., 2), depths and in-front flags of world points ``x`` (..., 3).
+    """Pixel positions (..., N, 2), depths and in-front flags of world points ``x`` (..., N, 3).
 
-    A point behind the camera gets depth 1 (its position is then meaningless; ``front`` says so).
+    ``world_to_optical`` (..., 4, 4) and ``K`` (..., 3, 3): one camera, or several stacked (V
+    cameras with ``x`` (..., 1, N, 3) give (..., V, N, ...)). A point behind the camera gets
+    depth 1 (its position is then meaningless; ``front`` says so).
     """
-    cam = x @ world_to_optical[:3, :3].T + world_to_optical[:3, 3]
+    cam = x @ world_to_optical[..., :3, :3].transpose(-1, -2) + world_to_optical[..., None, :3, 3]
     front = cam[..., 2] > 1e-3
     z = torch.where(front, cam[..., 2], torch.ones_like(cam[..., 2]))
-    return cam[..., :2] / z[..., None] * torch.stack([K[0, 0], K[1, 1]]) + K[:2, 2], z, front
+    focal = torch.stack([K[..., 0, 0], K[..., 1, 1]], dim=-1)[..., None, :]
+    return cam[..., :2] / z[..., None] * focal + K[..., None, :2, 2], z, front
 
 
 def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_index: np.ndarray,
@@ -722,43 +727,47 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     """Per row and group (each object, or all with the scene-level loss) the loss of ``frames``.
 
     ``x`` (R, F, N, 3) the particles of R rows at ``frames`` (F,) of ``masks``, those
-    ``visible`` (R, N) rendered (None: all); returns (R, G), differentiable in ``x``. Each
-    group's particles are taken by index (no boolean mask: on a GPU each would wait for the
-    device) and the splats' reach of every row and group is read back once per view.
+    ``visible`` (R, N) rendered (None: all); returns (R, G), differentiable in ``x``. Every
+    view, frame and group is rendered by one launch (``_splats``): a group's splats reach what
+    the largest of its splats in the view over ``frames`` needs (``_reach``), found on the
+    device, so nothing is read back. A view's frames without its mask render nothing and count
+    nothing.
     """
-    rows, device = x.shape[0], x.device
+    rows, n_frames, n_particles = x.shape[:3]
+    device = x.device
+    n_groups = len(object_ids) if per_object else 1
+    views = tuple(v for v in range(len(masks.views)) if masks.framed[v][frames].any())
+    if not views or not n_particles:
+        return x.new_zeros((rows, n_groups))
     index = torch.as_tensor(object_index, device=device)
     radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)).copy(),
                              device=device)[index]  # (N,) each particle's object's
-    groups = ([[object_ids[k]] for k in range(len(object_ids))] if per_object else [list(object_ids)])
-    members = ([torch.as_tensor(np.flatnonzero(object_index == k), device=device) for k in range(len(object_ids))]
-               if per_object else [torch.arange(len(object_index), device=device)])
-    totals = [torch.zeros(rows, dtype=torch.float64, device=device) for _ in groups]
-    for v, view in enumerate(masks.views):
-        local = np.flatnonzero(masks.framed[v][frames])
-        if not len(local):
-            continue
-        shown = torch.as_tensor(frames[local], device=device)
-        K = masks.K[v]
-        uv, z, front = _splat_centres(x[:, torch.as_tensor(local, device=device)], masks.world_to_optical[v], K)
-        sigma = torch.clamp(K[0, 0] * radius / z, min=0.5)
-        valid = [front[:, :, mine] if visible is None else front[:, :, mine] & visible[:, None, mine]
-                 for mine in members]
-        reach = _reach_of([sigma[:, :, mine] for mine in members], valid)
-        for g, (mine, ids) in enumerate(zip(members, groups, strict=True)):
-            target, known, pixels = masks.shown(v, tuple(ids), shown)
-            for value in sorted(set(reach[g]) - {0}):  # rows of one reach together (no particle in view: 0)
-                same = [r for r, row_reach in enumerate(reach[g]) if row_reach == value]
-                pick = slice(None) if len(same) == rows else torch.as_tensor(same, device=device)
-                soft = _soft_masks_in_batches(uv[pick][:, :, mine].flatten(0, 1), sigma[pick][:, :, mine].flatten(0, 1),
-                                              valid[g][pick].flatten(0, 1), value, view.height, view.width)
-                soft = soft.unflatten(0, (len(same), len(local)))
-                # frames where every pixel is another object's, or no particle is in view: nothing
-                counted = (pixels > 0) & valid[g][pick].any(dim=2)
-                per_frame = ((soft - target).abs() * known).sum(dim=(2, 3)) / pixels.clamp(min=1)
-                per_row = (per_frame * counted * masks.frame_weight[shown]).sum(dim=1)
-                totals[g] = totals[g] + per_row if len(same) == rows else totals[g].index_add(0, pick, per_row)
-    return torch.stack(totals, dim=1)
+    group = (index if per_object else torch.zeros_like(index)).to(torch.int32)
+    shown = torch.as_tensor(frames, device=device)
+    world_to_optical, K, size, framed = masks.cameras(views)
+    uv, z, front = _splat_centres(x[:, :, None], world_to_optical, K)  # (R, F, V, N, ...)
+    sigma = torch.clamp(K[:, 0, 0, None] * radius / z, min=0.5)
+    valid = front & framed[shown][None, :, :, None]
+    if visible is not None:
+        valid = valid & visible[:, None, None, :]
+    # each (row, view, group)'s largest splat over the frames, as (R, F, V, G) images' reach
+    largest = torch.where(valid, sigma.detach(), -math.inf).amax(dim=1)
+    largest = largest.new_full((rows, len(views), n_groups), -math.inf).scatter_reduce(
+        2, group.to(torch.int64).expand_as(largest), largest, "amax")
+    images = rows * n_frames * len(views)
+    canvas = _Canvas(group, n_groups, _reach(largest)[:, None].expand(-1, n_frames, -1, -1).reshape(-1),
+                     size[:, 0].repeat(rows * n_frames), size[:, 1].repeat(rows * n_frames),
+                     int((size[:, 0] * size[:, 1]).max()))
+    total = _SplatSum.apply(uv.reshape(images, n_particles, 2), sigma.reshape(images, n_particles),
+                            valid.reshape(images, n_particles), canvas)
+    soft = -torch.expm1(total).unflatten(0, (rows, n_frames, len(views), n_groups))
+    groups = tuple((object_ids[k],) for k in range(len(object_ids))) if per_object else (tuple(object_ids),)
+    target, known, pixels = masks.shown_in(views, groups, shown)  # (F, V, G, stride), (F, V, G)
+    per_image = ((soft - target).abs() * known).sum(dim=-1) / pixels.clamp(min=1)
+    # images where every pixel is another object's, or no particle of the group is in view: nothing
+    members = torch.nn.functional.one_hot(group.to(torch.int64), n_groups).to(torch.float64)
+    counted = (pixels > 0) & ((valid.to(torch.float64) @ members) > 0)
+    return (per_image * counted * masks.frame_weight[shown][None, :, None, None]).sum(dim=(1, 2))
 
 
 SPLAT_SHARES = (0.1, 1.0)
@@ -799,8 +808,7 @@ def calibrated_splat_radius(x: np.ndarray, object_id: int, views: list[View], ma
                 continue
             sigma = torch.clamp(focal * radius / z, min=0.5)
             every = torch.ones((1, len(uv)), dtype=torch.bool, device=device)
-            reach = _reach(sigma[None, None], every[None])[0]
-            soft = _soft_masks(uv[None], sigma[None], every, reach, view.height, view.width)[0]
+            soft = _soft_masks(uv[None], sigma[None], every, int(_reach(sigma.amax())), view.height, view.width)[0]
             total += float(((soft - target) * known).sum())
         return total
 

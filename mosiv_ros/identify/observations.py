@@ -152,7 +152,7 @@ class MaskTensors:
     frame_weight: torch.Tensor
     world_to_optical: list[torch.Tensor]
     K: list[torch.Tensor]
-    _groups: dict = field(default_factory=dict, repr=False)
+    _derived: dict = field(default_factory=dict, repr=False)
 
     def shown(self, view: int, ids: tuple[int, ...], frames: torch.Tensor | slice
               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -163,13 +163,56 @@ class MaskTensors:
         the known pixels' count. Derived from every frame's mask once per view and ids.
         """
         key = (view, ids)
-        if key not in self._groups:
+        if key not in self._derived:
             mask = self.masks[view]
             target = torch.isin(mask, torch.as_tensor(ids, device=mask.device))
             known = target | (mask == 0)
-            self._groups[key] = (target, known, known.sum(dim=(1, 2), dtype=torch.float64))
-        target, known, pixels = self._groups[key]
+            self._derived[key] = (target, known, known.sum(dim=(1, 2), dtype=torch.float64))
+        target, known, pixels = self._derived[key]
         return target[frames].double(), known[frames].double(), pixels[frames]
+
+    def shown_in(self, views: tuple[int, ...], groups: tuple[tuple[int, ...], ...], frames: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``shown`` of each of ``views`` and groups of object ids at ``frames``, stacked.
+
+        (F, V, G, P) float64 target and known pixels, each image flattened (row-major) and
+        padded to the largest of the views with pixels neither target nor known; (F, V, G) the
+        known pixels' count. Derived once per views and groups.
+        """
+        key = ("views", views, groups)
+        if key not in self._derived:
+            stride = max(self.views[v].height * self.views[v].width for v in views)
+            device = self.frame_weight.device
+            target = torch.zeros((len(self.frame_weight), len(views), len(groups), stride), dtype=torch.bool,
+                                 device=device)
+            known = torch.zeros_like(target)
+            pixels = torch.zeros(target.shape[:3], dtype=torch.float64, device=device)
+            for a, v in enumerate(views):
+                for g, ids in enumerate(groups):
+                    self.shown(v, ids, slice(0, 0))
+                    mine, seen, count = self._derived[(v, ids)]
+                    target[:, a, g, :mine[0].numel()] = mine.flatten(1)
+                    known[:, a, g, :seen[0].numel()] = seen.flatten(1)
+                    pixels[:, a, g] = count
+            self._derived[key] = (target, known, pixels)
+        target, known, pixels = self._derived[key]
+        return target[frames].double(), known[frames].double(), pixels[frames]
+
+    def cameras(self, views: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What the silhouettes need of ``views``'s cameras, stacked.
+
+        World-to-optical transforms (V, 4, 4), intrinsics (V, 3, 3), image sizes (V, 2) int32
+        (height, width), and which frames have each view's mask (F, V) bool.
+        """
+        key = ("cameras", views)
+        if key not in self._derived:
+            device = self.frame_weight.device
+            self._derived[key] = (
+                torch.stack([self.world_to_optical[v] for v in views]), torch.stack([self.K[v] for v in views]),
+                torch.tensor([[self.views[v].height, self.views[v].width] for v in views], dtype=torch.int32,
+                             device=device),
+                torch.as_tensor(np.stack([self.framed[v] for v in views], axis=1), device=device))
+        return self._derived[key]
 
     @classmethod
     def of(cls, views: list[View], masks: list[dict[str, np.ndarray]], device: str) -> MaskTensors:
