@@ -23,6 +23,7 @@ from mosiv_ros.identify.estimates import CURVATURE_STEP, WARN, coordinate_std, e
 from mosiv_ros.identify.fit import SPLAT_SHARE, FitProblem, FitSettings, Identifier
 from mosiv_ros.identify.losses import (
     TargetBlocks,
+    Terms,
     _morton,
     chamfer,
     chamfer_batch,
@@ -87,8 +88,8 @@ def test_silhouette_leaves_out_pixels_a_known_occluder_covers():
     background = np.zeros((48, 64), dtype=np.int32)
     covered = np.full((48, 64), OCCLUDED, dtype=np.int32)
     covered[:, :8] = 0  # some known background, so that the frame counts
-    assert silhouette_loss(x, index, [1], [view], {"top": background}, 0.005)[0] > 0.01
-    assert silhouette_loss(x, index, [1], [view], {"top": covered}, 0.005)[0] < 1e-6
+    assert silhouette_loss(x, index, [1], [view], {"top": background}, 0.005, device=DEVICE)[0] > 0.01
+    assert silhouette_loss(x, index, [1], [view], {"top": covered}, 0.005, device=DEVICE)[0] < 1e-6
 
 
 @pytest.mark.parametrize("spacing", [0.005, 0.01])
@@ -104,7 +105,7 @@ def test_splats_of_half_a_spacing_draw_a_block_of_particles_at_its_own_outline(s
     mask = np.zeros((48, 64), dtype=np.int32)
     mask[round(r0):round(r1), round(c0):round(c1)] = 1  # the pixels whose centres lie inside
     index = np.zeros(len(x), dtype=int)
-    losses_at = {share: silhouette_loss(x, index, [1], [view], {"top": mask}, share * spacing)[0]
+    losses_at = {share: silhouette_loss(x, index, [1], [view], {"top": mask}, share * spacing, device=DEVICE)[0]
                  for share in (SPLAT_SHARE, 2 * SPLAT_SHARE)}
     assert losses_at[SPLAT_SHARE] < 0.7 * losses_at[2 * SPLAT_SHARE], losses_at
 
@@ -121,18 +122,19 @@ def test_calibrated_splats_cover_the_pixels_the_mask_shows_and_grow_with_a_wider
     exact[r0:r1, c0:c1] = 7
     wide = np.zeros_like(exact)
     wide[r0 - 1:r1 + 1, c0 - 1:c1 + 1] = 7
-    radius = losses.calibrated_splat_radius(x, 7, [view], {"top": exact}, spacing)
-    wider = losses.calibrated_splat_radius(x, 7, [view], {"top": wide}, spacing)
+    radius = losses.calibrated_splat_radius(x, 7, [view], {"top": exact}, spacing, DEVICE)
+    wider = losses.calibrated_splat_radius(x, 7, [view], {"top": wide}, spacing, DEVICE)
     assert 0.1 * spacing < radius < wider < spacing
     # at the calibrated radius the soft mask holds as many pixels as the mask
     for r, mask in ((radius, exact), (wider, wide)):
         uv, z = view.project(x)
-        sigma = torch.as_tensor(np.maximum(100.0 * r / z, 0.5)[None])
+        sigma = torch.as_tensor(np.maximum(100.0 * r / z, 0.5)[None], device=DEVICE)
         reach = min(max(int(np.ceil(3 * float(sigma.max()))), 1), 8)  # as the loss's splats reach
-        uv = torch.as_tensor(uv[None])
-        soft = losses._soft_masks(uv, sigma, torch.ones((1, len(x)), dtype=torch.bool), reach, 48, 64)[0]
+        uv = torch.as_tensor(uv[None], device=DEVICE)
+        soft = losses._soft_masks(uv, sigma, torch.ones((1, len(x)), dtype=torch.bool, device=DEVICE), reach,
+                                  48, 64)[0]
         assert float(soft.sum()) == pytest.approx(float((mask == 7).sum()), rel=0.02)
-    assert losses.calibrated_splat_radius(x, 8, [view], {"top": exact}, spacing) is None  # not in the mask
+    assert losses.calibrated_splat_radius(x, 8, [view], {"top": exact}, spacing, DEVICE) is None  # not in the mask
 
 
 def _camera_looking_down(height: float = 1.0) -> View:
@@ -148,15 +150,15 @@ def test_silhouette_gradient_matches_finite_differences():
     index = np.zeros(30, dtype=int)
     mask = np.zeros((48, 64), dtype=np.uint16)
     mask[18:32, 26:40] = 1
-    loss, grad = silhouette_loss(x, index, [1], [view], {"top": mask}, splat_radius=0.01)
+    loss, grad = silhouette_loss(x, index, [1], [view], {"top": mask}, splat_radius=0.01, device=DEVICE)
     assert loss > 0
     h = 1e-6
     for i, c in [(0, 0), (7, 1), (21, 2)]:
         shifted = x.copy()
         shifted[i, c] += h
-        up = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01)[0]
+        up = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01, device=DEVICE)[0]
         shifted[i, c] -= 2 * h
-        down = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01)[0]
+        down = silhouette_loss(shifted, index, [1], [view], {"top": mask}, 0.01, device=DEVICE)[0]
         assert grad[i, c] == pytest.approx((up - down) / (2 * h), rel=1e-4, abs=1e-9)
 
 
@@ -168,8 +170,8 @@ def test_silhouette_treats_pixels_of_another_object_as_unknown():
     index = np.zeros(20, dtype=int)
     occluded = np.full((48, 64), 2, dtype=np.uint16)
     empty = np.zeros((48, 64), dtype=np.uint16)
-    assert silhouette_loss(x, index, [1], [view], {"top": occluded}, 0.01)[0] == 0.0
-    assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01)[0] > 0.0
+    assert silhouette_loss(x, index, [1], [view], {"top": occluded}, 0.01, device=DEVICE)[0] == 0.0
+    assert silhouette_loss(x, index, [1], [view], {"top": empty}, 0.01, device=DEVICE)[0] > 0.0
 
 
 def test_views_of_two_sizes_and_two_objects_render_in_one_batch_as_each_view_and_object_alone():
@@ -187,23 +189,24 @@ def test_views_of_two_sizes_and_two_objects_render_in_one_batch_as_each_view_and
     masks["low"][20:34, 24:40], masks["low"][28:42, 38:56] = 1, 2
     frames = np.stack([x, x])  # the second frame has only the top view's mask
     both = [masks, {"top": masks["top"]}]
-    per = silhouette_object_losses(frames, index, [1, 2], [top, low], both, 0.01)
-    top_alone = silhouette_object_losses(frames, index, [1, 2], [top], [masks, masks], 0.01)  # 2 frames of it
-    low_alone = silhouette_object_losses(frames, index, [1, 2], [low], [masks, {}], 0.01)  # 1 frame
+    per = silhouette_object_losses(frames, index, [1, 2], [top, low], both, 0.01, device=DEVICE)
+    top_alone = silhouette_object_losses(frames, index, [1, 2], [top], [masks, masks], 0.01, device=DEVICE)
+    low_alone = silhouette_object_losses(frames, index, [1, 2], [low], [masks, {}], 0.01, device=DEVICE)
     assert np.all(top_alone > 0) and np.all(low_alone > 0)
     np.testing.assert_allclose(per, 0.75 * top_alone + 0.5 * low_alone, rtol=1e-12)
     for k in range(2):  # an object's loss without the other object's particles
         mine = frames[:, index == k]
-        alone = silhouette_object_losses(mine, np.zeros(20, dtype=int), [k + 1], [top, low], both, 0.01)
+        alone = silhouette_object_losses(mine, np.zeros(20, dtype=int), [k + 1], [top, low], both, 0.01,
+                                         device=DEVICE)
         assert alone[0] == pytest.approx(per[k], rel=1e-12)
-    total, grad = losses.silhouette_losses(frames, index, [1, 2], [top, low], both, 0.01)
+    total, grad = losses.silhouette_losses(frames, index, [1, 2], [top, low], both, 0.01, device=DEVICE)
     assert total == pytest.approx(per.sum(), rel=1e-12) and np.all(np.isfinite(grad)) and np.any(grad != 0)
     # the wider view's image against its soft mask rendered alone, at its own size
     uv, z = low.project(x[index == 0])
     sigma = np.maximum(120.0 * 0.01 / z, 0.5)
     reach = min(max(int(np.ceil(3 * sigma.max())), 1), 8)
-    soft = losses._soft_masks(torch.as_tensor(uv[None]), torch.as_tensor(sigma[None]),
-                              torch.ones((1, 20), dtype=torch.bool), reach, 60, 80)[0].numpy()
+    soft = losses._soft_masks(torch.as_tensor(uv[None], device=DEVICE), torch.as_tensor(sigma[None], device=DEVICE),
+                              torch.ones((1, 20), dtype=torch.bool, device=DEVICE), reach, 60, 80)[0].cpu().numpy()
     target = masks["low"] == 1
     known = target | (masks["low"] == 0)
     assert low_alone[0] == pytest.approx((np.abs(soft - target) * known).sum() / known.sum(), rel=1e-12)
@@ -217,9 +220,11 @@ def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprin
     sigma = torch.tensor(RNG.uniform(0.5, 2.0, size=(3, 12)), requires_grad=True)
     valid = torch.tensor(RNG.random((3, 12)) > 0.2)
     reach, height, width = 3, 14, 18
-    soft = losses._soft_masks(uv, sigma, valid, reach, height, width)
+    on = [t.detach().to(DEVICE).requires_grad_() for t in (uv, sigma)]  # the kernels' device
+    soft = losses._soft_masks(*on, valid.to(DEVICE), reach, height, width)
     weights = torch.rand(soft.shape, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
-    got = torch.autograd.grad((soft * weights).sum(), (uv, sigma))
+    got = torch.autograd.grad((soft * weights.to(DEVICE)).sum(), on)
+    soft = soft.detach().cpu()
     rows, cols = torch.meshgrid(torch.arange(height, dtype=torch.float64),
                                 torch.arange(width, dtype=torch.float64), indexing="ij")
     clear = torch.ones(soft.shape, dtype=torch.float64)
@@ -236,7 +241,7 @@ def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprin
     torch.testing.assert_close(soft, want, rtol=1e-12, atol=1e-14)
     expected = torch.autograd.grad((want * weights).sum(), (uv, sigma))
     for a, b in zip(got, expected, strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-13)
+        torch.testing.assert_close(a.cpu(), b, rtol=1e-10, atol=1e-13)
 
 
 def _brute_squared(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -254,10 +259,11 @@ def test_the_tensor_nearest_neighbour_is_exact_and_takes_the_lowest_index_of_a_t
             # on targets, some duplicated (the duplicates come later)
             (lattice[rng.choice(len(lattice), 200)], np.concatenate([lattice, lattice[:300]])),
             (rng.normal(size=(50, 3)), np.zeros((0, 3)))]  # no target at all
-    q, q_valid = padded([a for a, _ in jobs], "cpu")
-    t, t_valid = padded([b for _, b in jobs], "cpu")
+    q, q_valid = padded([a for a, _ in jobs], DEVICE)
+    t, t_valid = padded([b for _, b in jobs], DEVICE)
     q_valid[0, :10] = False  # queries that are padding
-    d2, index = (a.numpy() for a in nearest(q, q_valid, TargetBlocks.of(t, t_valid)))
+    d2, index = (a.cpu().numpy() for a in nearest(q, q_valid, TargetBlocks.of(t, t_valid)))
+    q_valid = q_valid.cpu()
     ties = 0
     for j, (a, b) in enumerate(jobs):
         asked = q_valid[j, :len(a)].numpy()
@@ -292,14 +298,14 @@ def test_rows_of_queries_against_some_frames_blocks_find_what_each_rows_own_copy
     # target blocks built once for every frame, a few frames of them taken, searched by three
     # rows of queries: the same neighbours as blocks built for each row's own copy of the targets
     rng = np.random.default_rng(5)
-    y, y_valid = padded([rng.normal(size=(n, 3)) for n in (70, 0, 130, 90, 20)], "cpu")
+    y, y_valid = padded([rng.normal(size=(n, 3)) for n in (70, 0, 130, 90, 20)], DEVICE)
     rows, frames = 3, slice(1, 4)
-    q, q_valid = padded([rng.normal(size=(n, 3)) for n in (40, 25, 60) * rows], "cpu")
+    q, q_valid = padded([rng.normal(size=(n, 3)) for n in (40, 25, 60) * rows], DEVICE)
     shared = nearest(q, q_valid, TargetBlocks.of(y, y_valid).jobs(frames))
     copied = nearest(q, q_valid, TargetBlocks.of(y[frames].repeat(rows, 1, 1), y_valid[frames].repeat(rows, 1)))
     for a, b in zip(shared, copied, strict=True):
-        np.testing.assert_array_equal(a.numpy(), b.numpy())
-    assert np.isinf(shared[0][[0, 3, 6]].numpy()).all()  # frame 1 has no target, in every row
+        np.testing.assert_array_equal(a.cpu().numpy(), b.cpu().numpy())
+    assert np.isinf(shared[0][[0, 3, 6]].cpu().numpy()).all()  # frame 1 has no target, in every row
     with pytest.raises(ValueError, match="no whole number of rows"):
         nearest(q[:4], q_valid[:4], TargetBlocks.of(y, y_valid).jobs(frames))
 
@@ -311,15 +317,16 @@ def test_the_tensor_chamfer_equals_the_kd_tree_chamfer_and_its_gradient():
     pairs = [(rng.normal(size=(50, 3)), rng.normal(size=(700, 3)) + 0.3),
              (on, np.concatenate([y, y[:20]])),  # duplicated targets
              (rng.normal(size=(40, 3)), np.zeros((0, 3))), (np.zeros((0, 3)), y)]  # an empty set
-    x, x_valid = padded([a for a, _ in pairs], "cpu")
-    y_t, y_valid = padded([b for _, b in pairs], "cpu")
+    x, x_valid = padded([a for a, _ in pairs], DEVICE)
+    y_t, y_valid = padded([b for _, b in pairs], DEVICE)
     x.requires_grad_(True)
     values = chamfer_batch(x, x_valid, y_t, y_valid)
     values.sum().backward()
+    values, grad = values.detach().cpu(), x.grad.cpu()
     for j, (a, b) in enumerate(pairs):
         expected, g = chamfer(a, b)
-        assert float(values[j].detach()) == pytest.approx(expected, rel=1e-13, abs=0.0)
-        got = x.grad[j, :len(a)].numpy()
+        assert float(values[j]) == pytest.approx(expected, rel=1e-13, abs=0.0)
+        got = grad[j, :len(a)].numpy()
         # particles at one place tie as a target's nearest: a KD-tree gives the pull to any one of
         # them, the tensors to the first; the sum over the place is the same
         _, place = np.unique(a, axis=0, return_inverse=True)
@@ -327,8 +334,8 @@ def test_the_tensor_chamfer_equals_the_kd_tree_chamfer_and_its_gradient():
         np.add.at(summed[0], place, got)
         np.add.at(summed[1], place, g)
         np.testing.assert_allclose(summed[0], summed[1], rtol=1e-12, atol=1e-15)
-        assert np.all(x.grad[j, len(a):].numpy() == 0.0)
-    assert float(values[2].detach()) == 0.0 and float(values[3].detach()) == 0.0
+        assert np.all(grad[j, len(a):].numpy() == 0.0)
+    assert float(values[2]) == 0.0 and float(values[3]) == 0.0
 
 
 def _two_object_observations(frames: int = 3):
@@ -373,8 +380,9 @@ def test_tensor_terms_of_rows_together_equal_each_row_alone_and_the_frame_by_fra
     frames = slice(1, 4)
 
     def terms(rows):
-        return tensor_terms(torch.as_tensor(x[rows]), torch.as_tensor(visible[rows]), index, obs.tensors("cpu"),
-                            obs.object_ids, frames, loss, 0.005)
+        found = tensor_terms(torch.as_tensor(x[rows], device=DEVICE), torch.as_tensor(visible[rows], device=DEVICE),
+                             index, obs.tensors(DEVICE), obs.object_ids, frames, loss, 0.005)
+        return Terms(*(getattr(found, f.name).cpu() for f in fields(Terms)))
 
     together = terms(slice(None))
     for r in range(3):
@@ -391,7 +399,7 @@ def test_tensor_terms_of_rows_together_equal_each_row_alone_and_the_frame_by_fra
             tracked = track_loss(x[r, f], obs.tracks, f + 1, loss.track_scale, 2)[2]
             np.testing.assert_allclose(together.track[r, f].numpy(), tracked, rtol=1e-12, atol=1e-18)
         silhouette = silhouette_object_losses(x[r][:, mine], index[mine], obs.object_ids, obs.views,
-                                              obs.masks[frames], 0.005, per_object)
+                                              obs.masks[frames], 0.005, per_object, DEVICE)
         np.testing.assert_allclose(together.silhouette[r].numpy(), silhouette, rtol=1e-12)
     assert np.isnan(together.chamfer[:, 1, 1].numpy()).all()  # object 1 unseen at frame 2
     assert np.isnan(together.chamfer[:, 0].numpy()).any() != per_object
