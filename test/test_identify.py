@@ -212,6 +212,19 @@ def test_views_of_two_sizes_and_two_objects_render_in_one_batch_as_each_view_and
     assert low_alone[0] == pytest.approx((np.abs(soft - target) * known).sum() / known.sum(), rel=1e-12)
 
 
+def test_silhouette_batches_hold_at_most_their_splat_pairs_and_their_image_pixels(monkeypatch):
+    # 4 frames of 100 particles' typical 7 x 7 splats, or 1000 image pixels, to a batch
+    monkeypatch.setitem(losses.SPLAT_BATCH, "cpu", 4 * 100 * 49)
+    monkeypatch.setitem(losses.SPLAT_PIXELS, "cpu", 1000)
+    cases = [(([100, 100], 3, 100), [([0], slice(None)), ([1], slice(None))]),  # the pairs bind
+             (([100, 100], 3, 400), [([0], slice(0, 2)), ([0], slice(2, 4)), ([1], slice(0, 2)),
+                                     ([1], slice(2, 4))]),  # the pixels bind: two frames
+             (([10, 10, 10], 3, 100), [([0, 1, 2], slice(None))]),  # three rows' frames together
+             (([10], 3, 5000), [([0], slice(0, 1)), ([0], slice(1, 2)), ([0], slice(2, 3))])]  # one frame
+    for (counts, frames, pixels), want in cases:
+        assert losses._splat_chunks(counts, frames, "cpu", pixels) == want
+
+
 def test_soft_masks_and_their_gradient_are_the_splats_product_over_each_footprint():
     # the kernels against the definition: per pixel 1 - prod (1 - 0.9 w_i) over the valid splats
     # whose (2 reach + 1)^2 footprint around their rounded centre holds it; the gradient against

@@ -463,7 +463,8 @@ def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarra
     silhouette = x.new_zeros((rows, n_objects if loss.per_object else 1))
     if loss.silhouette_weight > 0 and observed.masks is not None:
         shown = np.arange(len(observed.masks.frame_weight))[frames]
-        for chunk, part in _splat_chunks(visible.sum(dim=1).tolist(), n_frames, str(x.device)):
+        pixels = observed.masks.pixels(n_objects if loss.per_object else 1)
+        for chunk, part in _splat_chunks(visible.sum(dim=1).tolist(), n_frames, str(x.device), pixels):
             silhouette = silhouette.index_add(0, torch.as_tensor(chunk, device=x.device), _silhouette_batch(
                 x[chunk, part], visible[chunk], object_index, object_ids, observed.masks, shown[part],
                 splat_radius, loss.per_object))
@@ -643,18 +644,26 @@ SPLAT_BATCH = {"cpu": 1 << 18, "cuda": 1 << 25}
 thousand particles, on a GPU every frame of a window (one frame at a time is launch overhead).
 The batches also decide which frames share a splat reach (that of the largest of an object's
 splats in a view over a row's batch, ``_splat_chunks``), and with it the loss's last digits."""
+SPLAT_PIXELS = {"cpu": 1 << 23, "cuda": 1 << 26}
+"""Image pixels rendered in one batch (every view's, for each object): each tensor of a batch's
+images is 8 bytes a pixel (64 MiB on a CPU, 512 MiB on a GPU), and a batch holds a few at once.
+At the sample bags' 96 x 72 pixels ``SPLAT_BATCH`` binds first; at a camera's 1280 x 720 this does."""
 
 
-def _splat_chunks(counts: list[int], n_frames: int, device: str) -> list[tuple[list[int], slice]]:
-    """The (rows, frames) rendered together, each about ``SPLAT_BATCH`` splat-pixel pairs.
+def _splat_chunks(counts: list[int], n_frames: int, device: str, pixels: int) -> list[tuple[list[int], slice]]:
+    """The (rows, frames) rendered together, each within ``SPLAT_BATCH`` and ``SPLAT_PIXELS``.
 
-    ``counts`` the particles each row renders. A row whose frames fit a batch is rendered whole,
-    with as many such rows as fit; another row alone, a batch of frames at a time. A row is cut
-    the same way whatever rows share its batches, so that its loss does not depend on them (a
-    splat's reach is set by the largest of its row's batch, ``_silhouette_batch``).
+    ``counts`` the particles each row renders, ``pixels`` the image pixels a row renders a
+    frame (over the views, for each group of objects). A row whose frames fit a batch is
+    rendered whole, with as many such rows as fit; another row alone, a batch of frames at a
+    time. A row is cut the same way whatever rows share its batches, so that its loss does not
+    depend on them (a splat's reach is set by the largest of its row's batch,
+    ``_silhouette_batch``).
     """
-    budget = SPLAT_BATCH["cpu" if device == "cpu" else "cuda"]
-    steps = [max(1, budget // (max(n, 1) * (2 * 3 + 1) ** 2)) for n in counts]  # 3-pixel splats typical
+    kind = "cpu" if device == "cpu" else "cuda"
+    most = SPLAT_PIXELS[kind] // max(pixels, 1)
+    steps = [max(1, min(SPLAT_BATCH[kind] // (max(n, 1) * (2 * 3 + 1) ** 2), most))  # 3-pixel splats typical
+             for n in counts]
     whole = [r for r, step in enumerate(steps) if n_frames <= step]
     together = min([steps[r] for r in whole], default=0) // max(n_frames, 1)
     return ([(whole[i:i + together], slice(None)) for i in range(0, len(whole), max(together, 1))]
@@ -695,7 +704,8 @@ def _silhouettes(x: np.ndarray, object_index: np.ndarray, object_ids: list[int],
     tensors = MaskTensors.of(views, masks, device)
     per, gradient = np.zeros(len(object_ids) if per_object else 1), np.zeros_like(x)
     with torch_threads(device), torch.set_grad_enabled(grad):
-        for _, chunk in _splat_chunks([x.shape[1]], len(x), device):
+        pixels = tensors.pixels(len(object_ids) if per_object else 1)
+        for _, chunk in _splat_chunks([x.shape[1]], len(x), device, pixels):
             xt = torch.tensor(x[None, chunk], requires_grad=grad, device=device)
             values = _silhouette_batch(xt, None, object_index, object_ids, tensors,
                                        np.arange(len(x))[chunk], splat_radius, per_object)[0]

@@ -198,6 +198,10 @@ class MaskTensors:
         target, known, pixels = self._derived[key]
         return target[frames].double(), known[frames].double(), pixels[frames]
 
+    def pixels(self, groups: int) -> int:
+        """The image pixels a frame's silhouettes render: every view's, once for each of ``groups``."""
+        return groups * sum(view.height * view.width for view in self.views)
+
     def cameras(self, views: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """What the silhouettes need of ``views``'s cameras, stacked.
 
