@@ -362,9 +362,9 @@ class _Chamfer(torch.autograd.Function):
         nx, ny = x_valid.sum(dim=1), y_valid.sum(dim=1)
         both = ((nx > 0) & (ny > 0))[:, None]
         x_on, y_on = x_valid & both, y_valid & both
-        ctx.save_for_backward(x, y, to_y, to_x, x_on, y_on, nx.clamp(min=1), ny.clamp(min=1))
-        return (torch.where(x_on, there, 0.0).sum(dim=1) / nx.clamp(min=1)
-                + torch.where(y_on, back, 0.0).sum(dim=1) / ny.clamp(min=1))
+        nx, ny = nx.clamp(min=1), ny.clamp(min=1)
+        ctx.save_for_backward(x, y, to_y, to_x, x_on, y_on, nx, ny)
+        return torch.where(x_on, there, 0.0).sum(dim=1) / nx + torch.where(y_on, back, 0.0).sum(dim=1) / ny
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
@@ -749,10 +749,10 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     views = tuple(v for v in range(len(masks.views)) if masks.framed[v][frames].any())
     if not views or not n_particles:
         return x.new_zeros((rows, n_groups))
-    index = torch.as_tensor(object_index, device=device)
+    index = torch.as_tensor(object_index, dtype=torch.int64, device=device)
     radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)).copy(),
                              device=device)[index]  # (N,) each particle's object's
-    group = (index if per_object else torch.zeros_like(index)).to(torch.int32)
+    group = index if per_object else torch.zeros_like(index)
     shown = torch.as_tensor(frames, device=device)
     world_to_optical, K, size, framed = masks.cameras(views)
     uv, z, front = _splat_centres(x[:, :, None], world_to_optical, K)  # (R, F, V, N, ...)
@@ -763,11 +763,11 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     # each (row, view, group)'s largest splat over the frames, as (R, F, V, G) images' reach
     largest = torch.where(valid, sigma.detach(), -math.inf).amax(dim=1)
     largest = largest.new_full((rows, len(views), n_groups), -math.inf).scatter_reduce(
-        2, group.to(torch.int64).expand_as(largest), largest, "amax")
+        2, group.expand_as(largest), largest, "amax")
     images = rows * n_frames * len(views)
-    canvas = _Canvas(group, n_groups, _reach(largest)[:, None].expand(-1, n_frames, -1, -1).reshape(-1),
-                     size[:, 0].repeat(rows * n_frames), size[:, 1].repeat(rows * n_frames),
-                     int((size[:, 0] * size[:, 1]).max()))
+    canvas = _Canvas(group.to(torch.int32), n_groups,
+                     _reach(largest)[:, None].expand(-1, n_frames, -1, -1).reshape(-1),
+                     size[:, 0].repeat(rows * n_frames), size[:, 1].repeat(rows * n_frames), masks.stride(views))
     total = _SplatSum.apply(uv.reshape(images, n_particles, 2), sigma.reshape(images, n_particles),
                             valid.reshape(images, n_particles), canvas)
     soft = -torch.expm1(total).unflatten(0, (rows, n_frames, len(views), n_groups))
@@ -775,7 +775,7 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     target, known, pixels = masks.shown_in(views, groups, shown)  # (F, V, G, stride), (F, V, G)
     per_image = ((soft - target).abs() * known).sum(dim=-1) / pixels.clamp(min=1)
     # images where every pixel is another object's, or no particle of the group is in view: nothing
-    members = torch.nn.functional.one_hot(group.to(torch.int64), n_groups).to(torch.float64)
+    members = torch.nn.functional.one_hot(group, n_groups).to(torch.float64)
     counted = (pixels > 0) & ((valid.to(torch.float64) @ members) > 0)
     return (per_image * counted * masks.frame_weight[shown][None, :, None, None]).sum(dim=(1, 2))
 

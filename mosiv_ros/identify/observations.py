@@ -162,14 +162,18 @@ class MaskTensors:
         is known for them (theirs or background: another object's pixel may hide them); (F,)
         the known pixels' count. Derived from every frame's mask once per view and ids.
         """
+        target, known, pixels = self._split(view, ids)
+        return target[frames].double(), known[frames].double(), pixels[frames]
+
+    def _split(self, view: int, ids: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``shown`` of every frame, the pixels as booleans, derived once per view and ids."""
         key = (view, ids)
         if key not in self._derived:
             mask = self.masks[view]
             target = torch.isin(mask, torch.as_tensor(ids, device=mask.device))
             known = target | (mask == 0)
             self._derived[key] = (target, known, known.sum(dim=(1, 2), dtype=torch.float64))
-        target, known, pixels = self._derived[key]
-        return target[frames].double(), known[frames].double(), pixels[frames]
+        return self._derived[key]
 
     def shown_in(self, views: tuple[int, ...], groups: tuple[tuple[int, ...], ...], frames: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -181,22 +185,24 @@ class MaskTensors:
         """
         key = ("views", views, groups)
         if key not in self._derived:
-            stride = max(self.views[v].height * self.views[v].width for v in views)
             device = self.frame_weight.device
-            target = torch.zeros((len(self.frame_weight), len(views), len(groups), stride), dtype=torch.bool,
-                                 device=device)
+            target = torch.zeros((len(self.frame_weight), len(views), len(groups), self.stride(views)),
+                                 dtype=torch.bool, device=device)
             known = torch.zeros_like(target)
             pixels = torch.zeros(target.shape[:3], dtype=torch.float64, device=device)
             for a, v in enumerate(views):
                 for g, ids in enumerate(groups):
-                    self.shown(v, ids, slice(0, 0))
-                    mine, seen, count = self._derived[(v, ids)]
+                    mine, seen, count = self._split(v, ids)
                     target[:, a, g, :mine[0].numel()] = mine.flatten(1)
                     known[:, a, g, :seen[0].numel()] = seen.flatten(1)
                     pixels[:, a, g] = count
             self._derived[key] = (target, known, pixels)
         target, known, pixels = self._derived[key]
         return target[frames].double(), known[frames].double(), pixels[frames]
+
+    def stride(self, views: tuple[int, ...]) -> int:
+        """The pixels of the largest of ``views``'s images (each of ``shown_in``'s rows)."""
+        return max(self.views[v].height * self.views[v].width for v in views)
 
     def pixels(self, groups: int) -> int:
         """The image pixels a frame's silhouettes render: every view's, once for each of ``groups``."""
