@@ -487,6 +487,7 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
     assert losses[0.1] > losses[0.0] * 1.5  # the silhouette term is there, and not small
 
 
+@CPU_KERNELS
 def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
     # the GPU's path (every frame and row at once, as tensors) run on the CPU against the CPU's
     # (KD-trees, frame by frame, row by row): the same window loss and gradient, the same scores.
@@ -529,8 +530,8 @@ def test_rows_at_their_own_steps_in_one_batch_score_as_alone_and_a_diverging_row
         candidates = np.array([[e.to_u(E)] for E in moduli])
         expected = alone.search.batch_object_losses(candidates, velocity, together=False)
         got = batched.search.batch_object_losses(candidates, velocity, together=False)
-        for a, b in zip(got, expected, strict=True):
-            np.testing.assert_array_equal(a, b)
+        for a, b in zip(got, expected, strict=True):  # on a GPU float atomics add in no fixed order
+            np.testing.assert_allclose(a, b, rtol=0 if DEVICE == "cpu" else SAME, atol=0)
         assert np.isnan(got[0]).tolist() == diverging
     assert (3, 0) in batched.search.simulators and (3, 0) not in alone.search.simulators
 

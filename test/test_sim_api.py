@@ -467,6 +467,24 @@ def test_tapes_kept_from_the_rollout_give_the_gradients_of_recomputed_frames():
     assert sims[1.0].kept_tape_frames == 0
 
 
+@pytest.mark.parametrize("block_warps", [1, 2, 4])
+def test_particles_spread_over_more_thread_blocks_move_and_differentiate_as_packed(block_warps):
+    """``Simulator._spread``: P2G and G2P with fewer warps of particles a block run every particle once."""
+    packed, spread = _two_balls(n_batch=2), _two_balls(n_batch=2)
+    spread._spread(block_warps)
+    results = []
+    for sim in (packed, spread):
+        traj = sim.rollout(3, grad=True)
+        seed = np.random.default_rng(2).normal(size=traj.shape).astype(np.float32)
+        results.append((traj, sim.backward(seed), sim.rollout(3)))
+    assert _equal(results[0][0], results[1][0]) and _equal(results[0][2], results[1][2])
+    assert np.abs(results[0][0][-1] - results[0][0][0]).max() > 0.02  # they moved
+    for name in ("E", "nu", "yield_stress", "friction", "ground.friction"):
+        assert _equal(results[0][1].params[name], results[1][1].params[name]), name
+    assert _equal(results[0][1].v0, results[1][1].v0)
+    assert np.abs(results[0][1].params["friction"]).max() > 0  # they touched
+
+
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding."""
     if DEVICE == "cpu":

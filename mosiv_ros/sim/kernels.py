@@ -61,6 +61,8 @@ CONTACT_MASS_FRACTION = wp.constant(1.0e-3)
 # simulations of one scene in different domains treated that layer differently (6 cm apart
 # after 8 frames of a bouncing ball).
 GROUND_SNAP = wp.constant(1.0e-3)
+# warps of a Warp launch's thread block (Warp 1.4 launches blocks of 256 threads)
+BLOCK_WARPS = wp.constant(8)
 
 
 @wp.func
@@ -86,6 +88,25 @@ def field_node(t: int, box_lo: wp.vec3i, box_dims: wp.vec3i, dims: wp.vec3i):
     return (t // n_box) * dims[0] * dims[1] * dims[2] + node_index(
         box_lo[0] + r // (box_dims[1] * box_dims[2]), box_lo[1] + (r // box_dims[2]) % box_dims[1],
         box_lo[2] + r % box_dims[2], dims)
+
+
+@wp.func
+def block_particle(t: int, block_warps: int, n_lanes: int):
+    """The particle thread ``t`` runs when each 256-thread block runs ``block_warps`` warps of them.
+
+    -1: none (a warp past ``block_warps`` in its block, or a thread past the ``n_lanes``
+    particles). With 8 warps (every thread) thread t runs particle t; fewer spread a small
+    launch over more blocks, so over more multiprocessors (``Simulator._spread``).
+    """
+    i = t
+    if block_warps < BLOCK_WARPS:
+        within = t % (BLOCK_WARPS * 32)
+        i = (t // (BLOCK_WARPS * 32)) * block_warps * 32 + within
+        if within >= block_warps * 32:
+            i = -1
+    if i >= n_lanes:
+        i = -1
+    return i
 
 
 @wp.func
@@ -147,6 +168,7 @@ def p2g(
     n_particles: int,
     part: int,
     parts: int,
+    block_warps: int,
     n_objects: int,
     n_nodes: int,
     dims: wp.vec3i,
@@ -166,7 +188,9 @@ def p2g(
     gradients and its replica of each parameter's, so on the CPU it runs in parts side by side
     (``params.lane_particle``).
     """
-    i = lane_particle(wp.tid(), part, parts)
+    i = block_particle(lane_particle(wp.tid(), part, parts), block_warps, src_x.shape[0])
+    if i < 0:
+        return
     batch = i // n_particles
     if not own_turn(own_substeps, batch, substep):  # a row whose frame is done: its state stays
         dst_b[i] = src_b[i]
@@ -516,6 +540,7 @@ def g2p(
     ground_normal: wp.array(dtype=float),
     has_ground: int,
     n_particles: int,
+    block_warps: int,
     n_objects: int,
     n_nodes: int,
     dims: wp.vec3i,
@@ -534,7 +559,9 @@ def g2p(
     The particle is also kept on or above the ground plane. A row whose frame is done (rows at
     their own time steps) keeps its state.
     """
-    i = wp.tid()
+    i = block_particle(wp.tid(), block_warps, src_x.shape[0])
+    if i < 0:
+        return
     batch = i // n_particles
     if not own_turn(own_substeps, batch, substep):
         dst_x[i] = src_x[i]

@@ -405,6 +405,9 @@ class _OwnSteps:
 
 ADJOINT_PARTS = 2
 """Parts that P2G's adjoint runs in, side by side, on the CPU (``Simulator._frame_adjoint``)."""
+SPREAD_BLOCKS = 128
+"""On a GPU, P2G and G2P take at least this many thread blocks where they have the warps for
+them (``Simulator._spread``): about an H100's 132 multiprocessors."""
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
 _UNPACKED = object()
@@ -579,8 +582,8 @@ class Simulator:
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
-            "n_particles": self.n_particles, "part": 0, "parts": 1, "n_objects": self.n_objects,
-            "n_nodes": self.n_nodes,
+            "n_particles": self.n_particles, "part": 0, "parts": 1, "block_warps": 8,
+            "n_objects": self.n_objects, "n_nodes": self.n_nodes,
             "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
             "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
             "family": self.family, "normal_rank": self.normal_rank,
@@ -590,6 +593,10 @@ class Simulator:
             "own_dt": wp.empty(0, dtype=float, device=d), "own_substeps": wp.empty(0, dtype=int, device=d),
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
+        self._particle_threads = self.n_batch * self.n_particles
+        if self.device != "cpu":
+            warps = -(-self.n_batch * self.n_particles // (32 * SPREAD_BLOCKS))
+            self._spread(min(8, 1 << max(warps - 1, 0).bit_length()))
         self._stress = any(e.has_stress for e in self.effects)
         self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
@@ -608,6 +615,25 @@ class Simulator:
                                     wp.zeros(self.n_batch, dtype=int, device=d))
 
     # --- set-up and checks ----------------------------------------------------------------
+
+    def _spread(self, block_warps: int) -> None:
+        """Run P2G and G2P with ``block_warps`` warps of particles in each block of 256 threads.
+
+        A small scene's particles fill few blocks (one row of a sample bag's 3,121: 13 blocks of
+        an H100's 132 multiprocessors), and each block's eight warps share one multiprocessor's
+        issue slots, caches and load/store units; spread out, a launch takes at least
+        ``SPREAD_BLOCKS`` blocks where it has the warps for them. The threads past a block's
+        warps return at once (``kernels.block_particle``). Every particle runs as before, so
+        the results are the same (on the CPU, where the threads run in order, to the bit).
+        ``block_warps`` is 1, 2, 4 or 8: so a lane's replicas follow its particle's, as the CPU
+        adjoint's parts need (``params.lane_particle``).
+        """
+        if block_warps not in (1, 2, 4, 8):
+            raise ValueError(f"block_warps must be 1, 2, 4 or 8, not {block_warps}")
+        n = self.n_batch * self.n_particles
+        self._scene["block_warps"] = block_warps
+        lanes = 32 * block_warps
+        self._particle_threads = n if block_warps >= 8 else -(-n // lanes) * 256
 
     def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
         """The replicas of the uniform accelerations (``Effect.uniform``) and their running sums.
@@ -904,7 +930,7 @@ class Simulator:
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        self._run(kernels.p2g, B * N, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
+        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d, box_lo,
                         box_dims)
         for effect in self.effects:
@@ -916,7 +942,7 @@ class Simulator:
             self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **steps)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
                   **box, dt=dt, **steps)
-        self._run(kernels.g2p, B * N, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
+        self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
