@@ -626,7 +626,8 @@ class Simulator:
         warps return at once (``kernels.block_particle``). Every particle runs as before, so
         the results are the same (on the CPU, where the threads run in order, to the bit).
         ``block_warps`` is 1, 2, 4 or 8: so a lane's replicas follow its particle's, as the CPU
-        adjoint's parts need (``params.lane_particle``).
+        adjoint's parts need (``params.lane_particle``). Set before the first rollout: recorded
+        commands and captured graphs keep the launches they were made with.
         """
         if block_warps not in (1, 2, 4, 8):
             raise ValueError(f"block_warps must be 1, 2, 4 or 8, not {block_warps}")
