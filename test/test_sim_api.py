@@ -485,6 +485,18 @@ def test_particles_spread_over_more_thread_blocks_move_and_differentiate_as_pack
     assert np.abs(results[0][1].params["friction"]).max() > 0  # they touched
 
 
+def test_a_gpu_spreads_particles_over_at_least_spread_blocks_where_it_has_the_warps():
+    from mosiv_ros.sim.simulator import SPREAD_BLOCKS, _block_warps
+
+    for n in (1, 3121, 6242, 10_000, 33_000, 100_000, 1_000_000):
+        warps = _block_warps(n)
+        blocks, halved = -(-n // (32 * warps)), -(-n // (64 * warps))
+        assert warps in (1, 2, 4, 8)
+        assert blocks >= SPREAD_BLOCKS or warps == 1  # as many blocks as asked, if there are the warps
+        assert warps == 8 or halved < SPREAD_BLOCKS  # and no fewer warps a block than needed
+    assert _block_warps(3121) == 1 and _block_warps(100_000) == 8
+
+
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
     """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding."""
     if DEVICE == "cpu":

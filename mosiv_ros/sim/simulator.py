@@ -408,6 +408,17 @@ ADJOINT_PARTS = 2
 SPREAD_BLOCKS = 128
 """On a GPU, P2G and G2P take at least this many thread blocks where they have the warps for
 them (``Simulator._spread``): about an H100's 132 multiprocessors."""
+
+
+def _block_warps(n: int) -> int:
+    """Warps of ``n`` particles a block on a GPU (``Simulator._spread``).
+
+    The most of 1, 2, 4, 8 that leaves ``SPREAD_BLOCKS`` blocks or more, or 1 where the particles
+    have fewer warps than that.
+    """
+    return min(8, 1 << (max(-(-n // 32) // SPREAD_BLOCKS, 1).bit_length() - 1))
+
+
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
 _UNPACKED = object()
@@ -582,8 +593,8 @@ class Simulator:
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
-            "n_particles": self.n_particles, "part": 0, "parts": 1, "block_warps": 8,
-            "n_objects": self.n_objects, "n_nodes": self.n_nodes,
+            "n_particles": self.n_particles, "part": 0, "parts": 1, "n_objects": self.n_objects,
+            "n_nodes": self.n_nodes,
             "dims": wp.vec3i(*self.dims), "lo": wp.vec3(*self.lo), "hi": wp.vec3(*self.hi),
             "dx": self.dx, "x0": self.x0, "v0": self.v0, "volume": self.volume, "obj": self.obj,
             "family": self.family, "normal_rank": self.normal_rank,
@@ -593,10 +604,7 @@ class Simulator:
             "own_dt": wp.empty(0, dtype=float, device=d), "own_substeps": wp.empty(0, dtype=int, device=d),
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
-        self._particle_threads = self.n_batch * self.n_particles
-        if self.device != "cpu":
-            warps = -(-self.n_batch * self.n_particles // (32 * SPREAD_BLOCKS))
-            self._spread(min(8, 1 << max(warps - 1, 0).bit_length()))
+        self._spread(8 if self.device == "cpu" else _block_warps(self.n_batch * self.n_particles))
         self._stress = any(e.has_stress for e in self.effects)
         self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
