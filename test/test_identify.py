@@ -517,14 +517,14 @@ def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
 
 
 def test_rows_at_their_own_steps_in_one_batch_score_as_alone_and_a_diverging_row_loses_only_itself():
-    # On a GPU the rows that each take their own time step go in one batch (own_step_batches),
-    # here on the CPU. The strong body force makes the softest rows invert at their own steps
+    # On a GPU the rows that each take their own time step go in one batch (own_step_batches);
+    # here both ways on either device. The strong body force makes the softest rows invert at their own steps
     problem, _ = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E"], frames=8)
     problem.sim_config.effects = [Gravity(), BodyForce(a=(100.0, 100.0, 100.0))]
     velocity = np.zeros((1, 6))
     velocity[0, :3] = problem.observations.initial_velocities()
     alone, batched = (Identifier(problem, FitSettings(cpu_workers=1)) for _ in range(2))
-    batched.search.own_step_batches = True
+    alone.search.own_step_batches, batched.search.own_step_batches = False, True  # a GPU batches by default
     (e,) = (entry.coordinate for entry in alone.entries)
     for moduli, diverging in (((1e5, 3e4, 1e4), [False] * 3), ((1e5, 1e3, 3e4), [False, True, False])):
         candidates = np.array([[e.to_u(E)] for E in moduli])
