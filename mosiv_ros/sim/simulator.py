@@ -416,7 +416,7 @@ def _block_warps(n: int) -> int:
     The most of 1, 2, 4, 8 that leaves ``SPREAD_BLOCKS`` blocks or more, or 1 where the particles
     have fewer warps than that.
     """
-    return min(8, 1 << (max(-(-n // 32) // SPREAD_BLOCKS, 1).bit_length() - 1))
+    return min(kernels.BLOCK_WARPS, 1 << (max(-(-n // 32) // SPREAD_BLOCKS, 1).bit_length() - 1))
 
 
 SUBSTEP_HEADROOM = 1.15
@@ -604,7 +604,7 @@ class Simulator:
             "own_dt": wp.empty(0, dtype=float, device=d), "own_substeps": wp.empty(0, dtype=int, device=d),
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
-        self._spread(8 if self.device == "cpu" else _block_warps(self.n_batch * self.n_particles))
+        self._spread(kernels.BLOCK_WARPS if self.device == "cpu" else _block_warps(self.n_batch * self.n_particles))
         self._stress = any(e.has_stress for e in self.effects)
         self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
@@ -642,7 +642,7 @@ class Simulator:
         n = self.n_batch * self.n_particles
         self._scene["block_warps"] = block_warps
         lanes = 32 * block_warps
-        self._particle_threads = n if block_warps >= 8 else -(-n // lanes) * 256
+        self._particle_threads = n if block_warps == kernels.BLOCK_WARPS else -(-n // lanes) * kernels.BLOCK_WARPS * 32
 
     def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
         """The replicas of the uniform accelerations (``Effect.uniform``) and their running sums.
