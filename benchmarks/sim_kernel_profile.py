@@ -32,7 +32,7 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=3,
                         help="every time is the least of this many (shared machines are noisy)")
     args = parser.parse_args()
-    sim = build(args.particles, args.objects, args.device)
+    sim = build(args.particles, args.objects, args.device, 0.0)
     traj = sim.rollout(1, grad=True)
     sim.backward(np.zeros_like(traj))  # allocates the tape buffers, compiles the adjoints
     frame = {"forward": math.inf, "backward": math.inf}
@@ -45,7 +45,8 @@ def main() -> int:
         sim.backward(np.full_like(traj, 1e-3))
         frame["backward"] = min(frame["backward"], time.perf_counter() - start)
     n_sub, dt = sim._record["n_sub"], sim._record["dt"]
-    states, grids, _, _ = sim._tape_buffers_for(n_sub)
+    recorded = sim._tape_buffers_for(n_sub)[0]
+    states, grids = recorded.states, recorded.grids
     states[0].copy_from(sim._record["checkpoints"][0])
     tape = wp.Tape()
     with tape:
