@@ -222,6 +222,43 @@ def test_stiffer_material_gets_more_substeps_per_frame():
     assert hard.time_step()[0] > 5 * soft.time_step()[0]
 
 
+def test_the_time_step_follows_the_initial_velocities_each_row_its_own():
+    """The CFL bound counts the fastest initial velocity, of each row, as last set."""
+    sim = falling_ball("elastic", {"E": 3e4})
+    given = sim.initial_velocity()
+    n_given, dt_given = sim.time_step()
+    fast = np.zeros((sim.n_particles, 3))
+    fast[sim.n_particles // 2] = (0.0, 0.0, -40.0)  # one particle, downwards
+    sim.set_initial_velocity(fast)
+    n_fast, dt_fast = sim.time_step()
+    assert n_fast > n_given
+    assert dt_fast * (40.0 + sim.config.max_speed) <= sim.config.cfl * sim.dx
+    sim.set_initial_velocity(given)
+    assert sim.time_step() == (n_given, dt_given)
+    rows = _two_balls(n_batch=2)
+    v = np.zeros((2, rows.n_particles, 3))
+    v[1, 0] = (40.0, 0.0, 0.0)
+    rows.set_initial_velocity(v)
+    substeps, _ = rows.own_time_steps()
+    assert substeps[1] > substeps[0]
+    assert rows.time_step()[0] == substeps[1]
+
+
+def test_what_the_simulator_returns_is_a_copy_that_later_sets_leave_alone():
+    sim = falling_ball("elastic", {"E": 3e4})
+    v, volume, x = sim.initial_velocity(), sim.volumes(), sim.initial_positions()
+    kept = v.copy(), volume.copy(), x.copy()
+    sim.set_initial_velocity(v + 1.0)
+    sim.set_volume(volume * 2.0)
+    x += 1.0  # a caller's edit of what it got
+    assert np.array_equal(v, kept[0]) and np.array_equal(volume, kept[1])
+    assert np.array_equal(sim.initial_velocity(), kept[0] + 1.0)
+    assert np.array_equal(sim.initial_positions(), kept[2])
+    first = sim.rollout(1)
+    again = sim.rollout(1)
+    assert not np.shares_memory(first, again)
+
+
 def test_one_scene_in_domains_of_different_margins_moves_the_same():
     """A floor on a layer of grid nodes acts alike whatever the (dx-snapped) domain corner."""
     from mosiv_ros.sim import Gravity, Ground, domain_around

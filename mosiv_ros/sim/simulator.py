@@ -324,7 +324,7 @@ class _Staging:
         """The staged array's values in a new host array (the rest queued as a last part)."""
         if not self._cuda:
             source, self._source = self._source, None
-            return source.numpy()
+            return source.numpy().copy()  # not a view of the simulator's memory
         self._queue(self._source.shape[0])
         self._source = None
         self._take(len(self._parts))
@@ -928,19 +928,19 @@ class Simulator:
 
     def initial_velocity(self) -> np.ndarray:
         """The initial particle velocities (B, N, 3) that ``set_initial_velocity`` set."""
-        return self._outward(self.v0.numpy().reshape(self.n_batch, self.n_particles, 3))
+        return self._outward(self._staging.download(self.v0).reshape(self.n_batch, self.n_particles, 3))
 
     def initial_positions(self) -> np.ndarray:
         """The particles' initial positions (N, 3), float32 as simulated."""
-        return self._outward(self.x0.numpy()[None])[0]
+        return self._outward(self._staging.download(self.x0)[None])[0]
 
     def object_index(self) -> np.ndarray:
         """Each particle's object (N,), an index into ``objects``."""
-        return self._outward(self.obj.numpy()[None])[0]
+        return self._outward(self._staging.download(self.obj)[None])[0]
 
     def volumes(self) -> np.ndarray:
         """The particle volumes (B, N) that ``set_volume`` set."""
-        return self._outward(self.volume.numpy().reshape(self.n_batch, self.n_particles))
+        return self._outward(self._staging.download(self.volume).reshape(self.n_batch, self.n_particles))
 
     def set_volume(self, volume: np.ndarray) -> None:
         """Particle volumes (m^3), (N,) for every batch or (B, N)."""
