@@ -273,6 +273,8 @@ class _Staging:
         """A host array of ``n`` elements of ``dtype`` on the page-locked buffer."""
         nbytes = n * wp.types.type_size_in_bytes(dtype)
         if self._buffer is None or self._buffer.capacity < nbytes:
+            if self._buffer is not None:  # no copy in flight may touch the old buffer once freed
+                wp.synchronize_stream(wp.get_stream(self._device))
             self._buffer = None  # free the old buffer first
             self._buffer = wp.empty(-(-nbytes // _Arena.ALIGN), dtype=_Arena.WORD, device="cpu", pinned=True)
         return wp.array(ptr=self._buffer.ptr, dtype=dtype, shape=(n,), device="cpu", owner=False)
