@@ -264,6 +264,7 @@ class _Staging:
         self._buffer: wp.array | None = None
         self._events: list[wp.Event] = []
         self._source: wp.array | None = None
+        self._dtype: type | None = None
         self._staged: wp.array | None = None
         self._parts: list[tuple[int, int]] = []  # (start, end) of each part queued so far
         self._done = 0  # the parts in ``_out``
@@ -279,12 +280,15 @@ class _Staging:
             self._buffer = wp.empty(-(-nbytes // _Arena.ALIGN), dtype=_Arena.WORD, device="cpu", pinned=True)
         return wp.array(ptr=self._buffer.ptr, dtype=dtype, shape=(n,), device="cpu", owner=False)
 
-    def stage(self, array: wp.array) -> None:
-        """Start a download of the one-dimensional ``array``, whose parts the device computes in order."""
-        self._source, self._parts, self._done = array, [], 0
+    def stage(self, array: wp.array, dtype: type | None = None) -> None:
+        """Start a download of the one-dimensional ``array``, whose parts the device computes in order.
+
+        ``dtype``: the host array's numpy type (converted as copied), by default the array's own.
+        """
+        self._source, self._dtype, self._parts, self._done = array, dtype, [], 0
         if self._cuda:
             self._staged = self._host(array.dtype, array.shape[0])
-            self._out = np.empty_like(self._staged.numpy())
+            self._out = np.empty_like(self._staged.numpy(), dtype=dtype)
 
     def part(self, end: int) -> None:
         """Queue the copy of the elements from the last part's end to ``end``, if they are ``OVERLAP_BYTES`` or more.
@@ -326,16 +330,16 @@ class _Staging:
         """The staged array's values in a new host array (the rest queued as a last part)."""
         if not self._cuda:
             source, self._source = self._source, None
-            return source.numpy().copy()  # not a view of the simulator's memory
+            return np.array(source.numpy(), dtype=self._dtype)  # a copy, not a view of the simulator's memory
         self._queue(self._source.shape[0])
         self._source = None
         self._take(len(self._parts))
         out, self._out = self._out, None
         return out
 
-    def download(self, array: wp.array) -> np.ndarray:
-        """A new host array of the one-dimensional ``array``'s values, once the device has computed them."""
-        self.stage(array)
+    def download(self, array: wp.array, dtype: type | None = None) -> np.ndarray:
+        """A new host array of the one-dimensional ``array``'s values (``dtype`` as ``stage``), once computed."""
+        self.stage(array, dtype)
         return self.collect()
 
     def reserve(self, dtype: type, n: int) -> None:
@@ -1325,7 +1329,7 @@ class Simulator:
 
     def _sim_state(self, state: _State) -> SimState:
         B, N = self.n_batch, self.n_particles
-        x, v, C, b = (self._outward(self._staging.download(a).astype(np.float64).reshape(B, N, *a.dtype._shape_))
+        x, v, C, b = (self._outward(self._staging.download(a, np.float64).reshape(B, N, *a.dtype._shape_))
                       for a in state.arrays)
         return SimState(x, v, C, b)
 
@@ -1513,8 +1517,8 @@ class Simulator:
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
             params={name: self.params.grad(name) for name in self.params.specs},
-            v0=self._outward(self._staging.download(adjoint.v).reshape(B, N, 3).astype(np.float64)),
-            volume=self._outward(self._staging.download(self.volume.grad).reshape(B, N).astype(np.float64)),
+            v0=self._outward(self._staging.download(adjoint.v, np.float64).reshape(B, N, 3)),
+            volume=self._outward(self._staging.download(self.volume.grad, np.float64).reshape(B, N)),
         )
 
     def _frame_tape(self, capacity: int) -> _FrameTape:
