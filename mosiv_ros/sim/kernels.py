@@ -47,8 +47,8 @@ import warp as wp
 
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
-from mosiv_ros.sim.params import lane_particle, param
-from mosiv_ros.sim.warp_reduce import gather, run_start, scatter
+from mosiv_ros.sim.params import add_param, lane_particle, param
+from mosiv_ros.sim.warp_reduce import add, run_start, scatter
 
 MAX_COLLIDERS = 2
 MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
@@ -557,7 +557,7 @@ def g2p(
     """Gather velocity and affine field from the particle's own object field and advect.
 
     The particle is also kept on or above the ground plane. A row whose frame is done (rows at
-    their own time steps) keeps its state.
+    their own time steps) keeps its state. Its adjoint is ``g2p_adjoint``, not Warp's.
     """
     i = block_particle(wp.tid(), block_warps, src_x.shape[0])
     if i < 0:
@@ -579,14 +579,12 @@ def g2p(
     offset = (batch * n_objects + k) * n_nodes
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
-    # the adjoint adds to grid_v's once per node for neighbouring lanes (sim.warp_reduce)
-    run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
                 dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
-                g_v = gather(grid_v, offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims), run)
+                g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
                 new_v += g_v * weight
                 # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
                 new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
@@ -607,6 +605,131 @@ def g2p(
     dst_v[i] = new_v
     dst_C[i] = new_C
     dst_x[i] = x_new
+
+
+@wp.func
+def bspline_slopes(fx: float):
+    """Derivatives of ``bspline_weights`` with respect to fx."""
+    return wp.vec3(fx - 1.5, 2.0 - 2.0 * fx, fx - 0.5)
+
+
+@wp.kernel
+def g2p_adjoint(
+    src_x: wp.array(dtype=wp.vec3),
+    src_v: wp.array(dtype=wp.vec3),
+    src_C: wp.array(dtype=wp.mat33),
+    grid_v: wp.array(dtype=wp.vec3),
+    obj: wp.array(dtype=int),
+    ground_height: wp.array(dtype=float),
+    ground_normal: wp.array(dtype=float),
+    has_ground: int,
+    n_particles: int,
+    block_warps: int,
+    n_objects: int,
+    n_nodes: int,
+    dims: wp.vec3i,
+    lo: wp.vec3,
+    dx: float,
+    dt: float,
+    own_dt: wp.array(dtype=float),
+    own_substeps: wp.array(dtype=int),
+    substep: int,
+    dst_x: wp.array(dtype=wp.vec3),
+    dst_v: wp.array(dtype=wp.vec3),
+    dst_C: wp.array(dtype=wp.mat33),
+    adj_src_x: wp.array(dtype=wp.vec3),
+    adj_src_v: wp.array(dtype=wp.vec3),
+    adj_src_C: wp.array(dtype=wp.mat33),
+    adj_grid_v: wp.array(dtype=wp.vec3),
+    adj_ground_height: wp.array(dtype=float),
+    adj_ground_normal: wp.array(dtype=float),
+    adj_dst_x: wp.array(dtype=wp.vec3),
+    adj_dst_v: wp.array(dtype=wp.vec3),
+    adj_dst_C: wp.array(dtype=wp.mat33),
+):
+    """The adjoint of ``g2p``, written out: adds to the adjoints of its inputs as Warp's would.
+
+    The first arguments are ``g2p``'s, then the adjoints (``.grad``) of its arrays that carry
+    one. Warp's generated adjoint replays the forward with every intermediate of the 27 unrolled
+    nodes kept live (255 registers on a GPU, with spills); here the nodes are read again in one
+    loop that keeps only the running sums, and each node's velocity adjoint is added once per
+    run of lanes (``sim.warp_reduce``). The forward's velocity sum is gathered again only where
+    a ground plane may have moved the particle.
+    """
+    i = block_particle(wp.tid(), block_warps, src_x.shape[0])
+    if i < 0:
+        return
+    batch = i // n_particles
+    if not own_turn(own_substeps, batch, substep):
+        adj_src_x[i] = adj_src_x[i] + adj_dst_x[i]
+        adj_src_v[i] = adj_src_v[i] + adj_dst_v[i]
+        adj_src_C[i] = adj_src_C[i] + adj_dst_C[i]
+        return
+    k = obj[i - batch * n_particles]
+    inv_dx = 1.0 / dx
+    x_i = src_x[i]
+    base = stencil_base(x_i, lo, inv_dx, dims)
+    fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    wx = bspline_weights(fx[0])
+    wy = bspline_weights(fx[1])
+    wz = bspline_weights(fx[2])
+    offset = (batch * n_objects + k) * n_nodes
+    step = own_step(own_dt, batch, dt)
+    adj_v = adj_dst_v[i]  # of the gathered velocity, once the ground's projection is undone
+    adj_x = adj_dst_x[i]  # of the advected position x + step v, likewise
+    if has_ground != 0:
+        new_v = wp.vec3(0.0)
+        for a in range(3):
+            for c in range(3):
+                for e in range(3):
+                    g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
+                    new_v += g_v * (wx[a] * wy[c] * wz[e])
+        x_new = x_i + new_v * step
+        raw = wp.vec3(param(ground_normal, 3 * batch, i), param(ground_normal, 3 * batch + 1, i),
+                      param(ground_normal, 3 * batch + 2, i))
+        n = wp.normalize(raw)
+        phi = wp.dot(n, x_new) - param(ground_height, batch, i)
+        if phi < 0.0:
+            adj_n = wp.vec3(0.0)
+            vn = wp.dot(new_v, n)
+            if vn < 0.0:  # v' = v - n (v . n)
+                adj_vn = -wp.dot(n, adj_v)
+                adj_n = adj_n - adj_v * vn + new_v * adj_vn
+                adj_v = adj_v + n * adj_vn
+            # x' = x - n phi, phi = n . x - height
+            adj_phi = -wp.dot(n, adj_x)
+            adj_n = adj_n - adj_x * phi + x_new * adj_phi
+            adj_x = adj_x + n * adj_phi
+            if adj_ground_height.shape[0] > 0:
+                add_param(adj_ground_height, batch, i, -adj_phi)
+            if adj_ground_normal.shape[0] > 0:  # through n = raw / |raw|
+                adj_raw = (adj_n - n * wp.dot(n, adj_n)) / wp.length(raw)
+                for d in range(3):
+                    add_param(adj_ground_normal, 3 * batch + d, i, adj_raw[d])
+    adj_v = adj_v + adj_x * step
+    adj_C = adj_dst_C[i] * (4.0 * inv_dx * inv_dx)  # new_C sums outer(g, dpos) w 4 / dx^2
+    adj_wx = wp.vec3(0.0)
+    adj_wy = wp.vec3(0.0)
+    adj_wz = wp.vec3(0.0)
+    adj_fx = wp.vec3(0.0)
+    run = run_start(offset + node_index(base[0], base[1], base[2], dims))
+    for a in range(3):
+        for c in range(3):
+            for e in range(3):
+                weight = wx[a] * wy[c] * wz[e]
+                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
+                node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                g_v = grid_v[node]
+                adj_Cd = adj_C * dpos
+                add(adj_grid_v, node, run, (adj_v + adj_Cd) * weight)
+                adj_w = wp.dot(adj_v + adj_Cd, g_v)
+                adj_fx -= wp.transpose(adj_C) * g_v * (weight * dx)
+                adj_wx[a] = adj_wx[a] + adj_w * wy[c] * wz[e]
+                adj_wy[c] = adj_wy[c] + adj_w * wx[a] * wz[e]
+                adj_wz[e] = adj_wz[e] + adj_w * wx[a] * wy[c]
+    adj_fx += wp.vec3(wp.dot(adj_wx, bspline_slopes(fx[0])), wp.dot(adj_wy, bspline_slopes(fx[1])),
+                      wp.dot(adj_wz, bspline_slopes(fx[2])))
+    adj_src_x[i] = adj_src_x[i] + adj_x + adj_fx * inv_dx
 
 
 @wp.kernel

@@ -38,6 +38,12 @@ def param(values: wp.array(dtype=float), index: int, tid: int):
 
 
 @wp.func
+def add_param(grads: wp.array(dtype=float), index: int, tid: int, value: float):
+    """Add ``value`` to the gradient of the replica ``param(values, index, tid)`` read (its adjoint)."""
+    wp.atomic_add(grads, index * _REPLICAS + tid % _REPLICAS, value)
+
+
+@wp.func
 def lane_particle(t: int, part: int, parts: int):
     """The particle that thread ``t`` of part ``part`` of ``parts`` of a launch runs.
 

@@ -171,6 +171,7 @@ def _build(module: wp.context.Module, device: str) -> None:
 
 def load_modules(device: str, modules: Iterable[types.ModuleType | str]) -> None:
     """Compile if needed and load the Warp kernels of ``modules`` on ``device``, thread- and process-safely."""
+    start()  # the kernel cache's directory is Warp's once it is initialised
     names = list(dict.fromkeys(m if isinstance(m, str) else m.__name__ for m in modules))
     with _LOCK:
         new = [name for name in names if (device, name) not in _loaded]

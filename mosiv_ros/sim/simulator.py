@@ -549,6 +549,9 @@ def _block_warps(n: int) -> int:
 
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
+_G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_normal", "dst_x", "dst_v",
+                 "dst_C")
+"""The arguments of ``kernels.g2p`` whose adjoints ``kernels.g2p_adjoint`` takes after them, in order."""
 _UNPACKED = object()
 """What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
 
@@ -1016,6 +1019,13 @@ class Simulator:
     def _values(self, effect: Effect) -> dict[str, wp.array]:
         return {s.name: self.params[f"{effect.name}.{s.name}"] for s in effect.params}
 
+    def _labels_of(self, kernel: wp.Kernel) -> dict[str, int]:
+        """The position of each of ``kernel``'s arguments, by name."""
+        labels = self._labels.get(kernel)
+        if labels is None:
+            labels = self._labels[kernel] = {arg.label: i for i, arg in enumerate(kernel.adj.args)}
+        return labels
+
     def _run(self, kernel: wp.Kernel, dim: int, **given: object) -> None:
         """Launch ``kernel`` over ``dim`` threads with its arguments found by name (``_bind``).
 
@@ -1028,9 +1038,7 @@ class Simulator:
         if self.device != "cpu":
             wp.launch(kernel, dim=dim, inputs=_bind(kernel, given, self._scene), device=self.device)
             return
-        labels = self._labels.get(kernel)
-        if labels is None:
-            labels = self._labels[kernel] = {arg.label: i for i, arg in enumerate(kernel.adj.args)}
+        labels = self._labels_of(kernel)
         # a given value that is a parameter is set at each launch; a bundle picks the command
         key = (kernel, *((name, None if name in labels else value) for name, value in given.items()))
         recorded = self._commands.get(key)
@@ -1178,13 +1186,15 @@ class Simulator:
                 launch()
                 continue
             kernel, dim, max_blocks, inputs, outputs, device = launch[:6]
-            if self.device != "cpu":
+            if kernel is kernels.g2p:
+                self._g2p_adjoint((id(frame), position), dim, max_blocks, [*inputs, *outputs], tape)
+            elif self.device != "cpu":
                 wp.launch(kernel, dim, inputs=inputs, outputs=outputs,
                           adj_inputs=[tape.get_adjoint(a) for a in inputs],
                           adj_outputs=[tape.get_adjoint(a) for a in outputs], device=device,
                           adjoint=True, record_tape=False, max_blocks=max_blocks)
             elif kernel is kernels.p2g and helper is not None:
-                labels = self._labels[kernel]
+                labels = self._labels_of(kernel)
                 parts = []
                 for part in range(ADJOINT_PARTS):
                     args = [*inputs, *outputs]
@@ -1199,6 +1209,30 @@ class Simulator:
                 self._cpu_adjoint((id(frame), position), kernel, dim, [*inputs, *outputs], tape)
         for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
+
+    def _g2p_adjoint(self, key: tuple, dim: int, max_blocks: int, args: list, tape: wp.Tape) -> None:
+        """Run ``kernels.g2p_adjoint`` for one recorded launch of ``kernels.g2p`` with ``args``.
+
+        On the CPU its command is kept under ``key``, as ``_cpu_adjoint`` keeps Warp's adjoints.
+        """
+        labels = self._labels_of(kernels.g2p)
+        full = [*args, *(tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS)]
+        if self.device != "cpu":
+            wp.launch(kernels.g2p_adjoint, dim, inputs=full, device=self.device, record_tape=False,
+                      max_blocks=max_blocks)
+            return
+        kept = self._adjoint_commands.get(key)
+        if kept is None or kept[0] is not kernels.g2p_adjoint:
+            command = wp.launch(kernels.g2p_adjoint, dim, inputs=full, device=self.device,
+                                record_tape=False, record_cmd=True)
+            kept = self._adjoint_commands[key] = (kernels.g2p_adjoint, command, full)
+        _, command, packed = kept
+        for i, value in enumerate(full):
+            if value is not packed[i]:
+                command.set_param_at_index(i, value)
+                packed[i] = value
+        command.set_dim(dim)
+        command.launch()
 
     def _cpu_adjoint(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
         """Run the adjoint of one recorded CPU launch of ``kernel`` with arguments ``args``.

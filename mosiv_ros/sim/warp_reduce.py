@@ -1,22 +1,22 @@
 """Warp-aggregated grid scatter: the lanes of a CUDA warp that add to one grid node add once.
 
 P2G adds every particle's mass and momentum to the 27 nodes of its stencil with float atomics,
-and so does the adjoint of G2P with the particles' velocity adjoints. Particles next to each
-other in memory mostly share their stencil (the lattices of ``sim.sampling`` and of lifting
-put two particles per cell along their fastest axis; particles sorted by cell put all of a
-cell's together), so a warp's 32 lanes hit far fewer than 32 distinct nodes, and atomics to one
-address are serialised in the L2 cache: on an H100 P2G was bound by them (Nsight Compute: 64 %
-of the L2's throughput, 4 % of DRAM's, 649 of a substep's 755 us at 1M particles).
+and so does G2P's adjoint (``kernels.g2p_adjoint``) with the particles' velocity adjoints.
+Particles next to each other in memory mostly share their stencil (the lattices of
+``sim.sampling`` and of lifting put two particles per cell along their fastest axis; particles
+sorted by cell put all of a cell's together), so a warp's 32 lanes hit far fewer than 32
+distinct nodes, and atomics to one address are serialised in the L2 cache: on an H100 P2G was
+bound by them (Nsight Compute: 64 % of the L2's throughput, 4 % of DRAM's, 649 of a substep's
+755 us at 1M particles).
 
 Here the lanes of a warp with the same key (the field node of their stencil's first corner, so
 that equal keys mean equal stencils) that sit next to each other form a run; each run sums its
 values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run steps)
-and its last lane does the one atomic add. Adjoint: a scatter's value gets the node's adjoint,
-as a plain atomic add's does; a gather's adjoint (G2P's read of the grid velocity) is summed
-over the run the same way before its one atomic add.
+and its last lane does the one atomic add. Adjoint of ``scatter``: a scatter's value gets the
+node's adjoint, as a plain atomic add's does.
 
 On the CPU (no warps; the threads of a launch run in order) every function is the plain atomic
-add or load it replaces, so CPU results are unchanged to the bit. Runs are recomputed in every
+add it replaces, so CPU results are unchanged to the bit. Runs are recomputed in every
 call from the lanes that are active there, so a warp that diverged between calls only makes
 shorter runs. On CUDA the summation order differs from one atomic per lane (float sums, the
 same to rounding), as the order of atomics already did from run to run.
@@ -93,25 +93,15 @@ _ADJ_SCATTER = """
         adj_p += wp::index_grad(grid_p, node);
 """
 
-_GATHER = """
-    return wp::index(grid_v, node);
-"""
-
-_ADJ_GATHER = """
-    wp::vec3* target = nullptr;
-    if (adj_grid_v.data)
-        target = &wp::index(adj_grid_v, node);
-    else if (grid_v.grad)
-        target = &wp::index_grad(grid_v, node);
+_ADD = """
 #if defined(__CUDA_ARCH__)
 """ + _RUN + """
-    float sum_x = adj_ret[0], sum_y = adj_ret[1], sum_z = adj_ret[2];
+    float sum_x = value[0], sum_y = value[1], sum_z = value[2];
 """ + _scan("sum_x", "sum_y", "sum_z") + """
-    if (tail && target)
-        wp::adj_atomic_add(target, wp::vec3(sum_x, sum_y, sum_z));
+    if (tail)
+        wp::atomic_add(target, node, wp::vec3(sum_x, sum_y, sum_z));
 #else
-    if (target)
-        wp::adj_atomic_add(target, adj_ret);
+    wp::atomic_add(target, node, value);
 #endif
 """
 
@@ -129,7 +119,7 @@ def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node
     ...
 
 
-@wp.func_native(_GATHER, _ADJ_GATHER)
-def gather(grid_v: wp.array(dtype=wp.vec3), node: int, run: int) -> wp.vec3:
-    """grid_v[node], whose adjoint is added once per run of lanes (``run_start``)."""
+@wp.func_native(_ADD)
+def add(target: wp.array(dtype=wp.vec3), node: int, run: int, value: wp.vec3):
+    """target[node] += value, once per run of lanes (``run_start``); not differentiable."""
     ...
