@@ -613,7 +613,7 @@ def bspline_slopes(fx: float):
     return wp.vec3(fx - 1.5, 2.0 - 2.0 * fx, fx - 0.5)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def g2p_adjoint(
     src_x: wp.array(dtype=wp.vec3),
     src_v: wp.array(dtype=wp.vec3),

@@ -1185,49 +1185,61 @@ class Simulator:
             if callable(launch):
                 launch()
                 continue
-            kernel, dim, max_blocks, inputs, outputs, device = launch[:6]
+            kernel, dim, max_blocks, inputs, outputs = launch[:5]
+            args, key = [*inputs, *outputs], (id(frame), position)
+            labels = self._labels_of(kernel)
             if kernel is kernels.g2p:
-                self._g2p_adjoint((id(frame), position), dim, max_blocks, [*inputs, *outputs], tape)
-            elif self.device != "cpu":
-                wp.launch(kernel, dim, inputs=inputs, outputs=outputs,
-                          adj_inputs=[tape.get_adjoint(a) for a in inputs],
-                          adj_outputs=[tape.get_adjoint(a) for a in outputs], device=device,
-                          adjoint=True, record_tape=False, max_blocks=max_blocks)
-            elif kernel is kernels.p2g and helper is not None:
-                labels = self._labels_of(kernel)
-                parts = []
-                for part in range(ADJOINT_PARTS):
-                    args = [*inputs, *outputs]
-                    args[labels["part"]], args[labels["parts"]] = part, ADJOINT_PARTS
-                    parts.append(partial(self._cpu_adjoint, (id(frame), position, part), kernel,
-                                         lane_count(dim, part, ADJOINT_PARTS), args, tape))
-                others = [helper.submit(job) for job in parts[1:]]
-                parts[0]()
-                for other in others:
-                    other.result()
+                adjoints = [tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS]
+                self._adjoint_launch(key, kernels.g2p_adjoint, dim, max_blocks, [*args, *adjoints], tape,
+                                     written=True)
             else:
-                self._cpu_adjoint((id(frame), position), kernel, dim, [*inputs, *outputs], tape)
+                self._adjoint_launch(key, kernel, dim, max_blocks, args, tape, helper)
         for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
 
-    def _g2p_adjoint(self, key: tuple, dim: int, max_blocks: int, args: list, tape: wp.Tape) -> None:
-        """Run ``kernels.g2p_adjoint`` for one recorded launch of ``kernels.g2p`` with ``args``.
+    def _adjoint_launch(self, key: tuple, kernel: wp.Kernel, dim: int, max_blocks: int, args: list,
+                        tape: wp.Tape, helper: ThreadPoolExecutor | None = None, written: bool = False) -> None:
+        """Warp's adjoint of a launch of ``kernel`` with ``args``, or ``kernel`` itself if ``written``.
 
-        On the CPU its command is kept under ``key``, as ``_cpu_adjoint`` keeps Warp's adjoints.
+        A written adjoint (``kernels.g2p_adjoint``) is a kernel of its own that takes the
+        adjoints among its arguments. On the CPU a kernel with ``part`` and ``parts`` arguments
+        (P2G) runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
+        (``params.lane_particle`` says why they may), each under a ``key`` of its own.
         """
-        labels = self._labels_of(kernels.g2p)
-        full = [*args, *(tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS)]
         if self.device != "cpu":
-            wp.launch(kernels.g2p_adjoint, dim, inputs=full, device=self.device, record_tape=False,
-                      max_blocks=max_blocks)
+            if written:
+                wp.launch(kernel, dim, inputs=args, device=self.device, record_tape=False, max_blocks=max_blocks)
+            else:
+                wp.launch(kernel, dim, inputs=args, adj_inputs=[tape.get_adjoint(a) for a in args],
+                          device=self.device, adjoint=True, record_tape=False, max_blocks=max_blocks)
             return
+        run = self._cpu_written if written else self._cpu_adjoint
+        labels = self._labels_of(kernel)
+        if helper is None or "parts" not in labels:
+            run(key, kernel, dim, args, tape)
+            return
+        jobs = []
+        for part in range(ADJOINT_PARTS):
+            args = list(args)
+            args[labels["part"]], args[labels["parts"]] = part, ADJOINT_PARTS
+            jobs.append(partial(run, (*key, part), kernel, lane_count(dim, part, ADJOINT_PARTS), args, tape))
+        others = [helper.submit(job) for job in jobs[1:]]
+        jobs[0]()
+        for other in others:
+            other.result()
+
+    def _cpu_written(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
+        """Launch the written adjoint ``kernel`` with ``args`` on the CPU (``tape`` unused).
+
+        Its command is kept under ``key`` and only an argument that is not the object set last
+        time is set again, as ``_cpu_adjoint`` does for Warp's adjoints.
+        """
         kept = self._adjoint_commands.get(key)
-        if kept is None or kept[0] is not kernels.g2p_adjoint:
-            command = wp.launch(kernels.g2p_adjoint, dim, inputs=full, device=self.device,
-                                record_tape=False, record_cmd=True)
-            kept = self._adjoint_commands[key] = (kernels.g2p_adjoint, command, full)
+        if kept is None or kept[0] is not kernel:
+            command = wp.launch(kernel, dim, inputs=args, device=self.device, record_tape=False, record_cmd=True)
+            kept = self._adjoint_commands[key] = (kernel, command, list(args))
         _, command, packed = kept
-        for i, value in enumerate(full):
+        for i, value in enumerate(args):
             if value is not packed[i]:
                 command.set_param_at_index(i, value)
                 packed[i] = value
