@@ -5,11 +5,13 @@
 Records one frame of substeps on a ``wp.Tape`` (the way ``Simulator.backward`` recomputes a
 frame), then replays every recorded launch forward and then every adjoint in reverse order, each
 synchronised and timed, and sums the times per kernel. A forward replay repeats a recorded
-command (``wp.Launch``), so it times the kernel alone; an adjoint launch packs its arguments
-first (12-50 us on the CPU). ``frame_s`` times one whole frame of ``Simulator.rollout`` and of
-``Simulator.backward`` (which recomputes the frame, then runs its adjoint), and
-``outside_kernels_s`` what of it the kernels above do not account for: zeroing, the active
-box, launching, Python (for the backward, less the adjoint launches' packing). Prints JSON.
+command (``wp.Launch``), so it times the kernel alone; an adjoint runs as ``Simulator.backward``
+runs it (``Simulator._adjoint_of``: G2P's written adjoint, the others Warp's, each on one thread
+here; on the CPU their packed arguments are kept after the first of the repeats). ``frame_s``
+times one whole frame of ``Simulator.rollout`` and of ``Simulator.backward`` (which recomputes
+the frame, then runs its adjoint), and ``outside_kernels_s`` what of it the kernels above do
+not account for: zeroing, the active box, launching, Python (for the backward, where the CPU
+runs P2G's adjoint in two parts side by side, this can be negative). Prints JSON.
 """
 
 from __future__ import annotations
@@ -68,14 +70,11 @@ def main() -> int:
             once[kernel.key] = once.get(kernel.key, 0.0) + time.perf_counter() - start
         forward = {k: min(t, forward.get(k, math.inf)) for k, t in once.items()}
         once = {}
-        for launch in reversed(tape.launches):
-            kernel, dim, max_blocks, inputs, outputs, device = launch[:6]
+        for position, launch in enumerate(reversed(tape.launches)):
+            kernel, device = launch[0], launch[5]
             wp.synchronize_device(device)
             start = time.perf_counter()
-            wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device,
-                      adj_inputs=[tape.get_adjoint(a) for a in inputs],
-                      adj_outputs=[tape.get_adjoint(a) for a in outputs], adjoint=True,
-                      max_blocks=max_blocks)
+            sim._adjoint_of(launch, tape, ("profile", position))
             wp.synchronize_device(device)
             once[kernel.key] = once.get(kernel.key, 0.0) + time.perf_counter() - start
         adjoint = {k: min(t, adjoint.get(k, math.inf)) for k, t in once.items()}

@@ -1185,17 +1185,25 @@ class Simulator:
             if callable(launch):
                 launch()
                 continue
-            kernel, dim, max_blocks, inputs, outputs = launch[:5]
-            args, key = [*inputs, *outputs], (id(frame), position)
-            labels = self._labels_of(kernel)
-            if kernel is kernels.g2p:
-                adjoints = [tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS]
-                self._adjoint_launch(key, kernels.g2p_adjoint, dim, max_blocks, [*args, *adjoints], tape,
-                                     written=True)
-            else:
-                self._adjoint_launch(key, kernel, dim, max_blocks, args, tape, helper)
+            self._adjoint_of(launch, tape, (id(frame), position), helper)
         for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
+
+    def _adjoint_of(self, launch: tuple, tape: wp.Tape, key: tuple,
+                    helper: ThreadPoolExecutor | None = None) -> None:
+        """The adjoint of one ``launch`` recorded on ``tape`` (``_adjoint_launch``'s ``key``, ``helper``).
+
+        G2P's is ``kernels.g2p_adjoint``, every other kernel's Warp's.
+        """
+        kernel, dim, max_blocks, inputs, outputs = launch[:5]
+        args = [*inputs, *outputs]
+        if kernel is kernels.g2p:
+            labels = self._labels_of(kernel)
+            adjoints = [tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS]
+            self._adjoint_launch(key, kernels.g2p_adjoint, dim, max_blocks, [*args, *adjoints], tape,
+                                 written=True)
+        else:
+            self._adjoint_launch(key, kernel, dim, max_blocks, args, tape, helper)
 
     def _adjoint_launch(self, key: tuple, kernel: wp.Kernel, dim: int, max_blocks: int, args: list,
                         tape: wp.Tape, helper: ThreadPoolExecutor | None = None, written: bool = False) -> None:
