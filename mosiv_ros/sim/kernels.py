@@ -32,11 +32,12 @@ mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two object
 corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
-accumulations are ``wp.atomic_add``. Warp's adjoint does not support dynamic loops that carry a
-differentiable value, so the differentiable sums over a node's fields are atomics in
-``contact_totals``, and ``grid_update`` runs one thread per field node; the loops over a node's
-fields (``node_total``, ``present_fields``) give only thresholds and integers, and sit in
-functions, whose calls the adjoint replays as the forward ran them. Both passes launch over a
+accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's, which
+is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU). Warp's adjoint does
+not support dynamic loops that carry a differentiable value, so the differentiable sums over a
+node's fields are atomics in ``contact_totals``, and ``grid_update`` runs one thread per field
+node; the loops over a node's fields (``node_total``, ``present_fields``) give only thresholds
+and integers, and sit in functions, whose calls the adjoint replays as the forward ran them. Both passes launch over a
 box of nodes (``field_node``): the whole grid, or on the CPU, where every thread costs, the
 nodes the particles' stencils can reach (``Simulator._active_box``).
 """
@@ -225,16 +226,22 @@ def p2g(
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
     offset = q * n_nodes
-    momentum = src_v[i] * mass
+    # a node's momentum is w (m v + affine dpos) with dpos = (o - fx) dx at offset o: the part
+    # at o = (0, 0, 0), and per unit offset along each axis the affine matrix's column times dx
+    moved = affine * dx
+    at_origin = src_v[i] * mass - moved * fx
+    per_x = wp.vec3(moved[0, 0], moved[1, 0], moved[2, 0])
+    per_y = wp.vec3(moved[0, 1], moved[1, 1], moved[2, 1])
+    per_z = wp.vec3(moved[0, 2], moved[1, 2], moved[2, 2])
     # neighbouring lanes with the same stencil add once per node (sim.warp_reduce)
     run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
-                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                scatter(grid_m, grid_p, node, run, weight * mass, weight * (momentum + affine * dpos))
+                p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
+                scatter(grid_m, grid_p, node, run, weight * mass, p_node * weight)
 
 
 @wp.func
@@ -578,16 +585,22 @@ def g2p(
     wz = bspline_weights(fx[2])
     offset = (batch * n_objects + k) * n_nodes
     new_v = wp.vec3(0.0)
-    new_C = wp.mat33(0.0)
+    # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2: C = D^-1 sum w g dpos^T
+    # with dpos = (o - fx) dx for the node at offset o, summed as D^-1 dx (sum w g o^T - v fx^T)
+    moment_x = wp.vec3(0.0)  # sum w g o_x, a column of sum w g o^T
+    moment_y = wp.vec3(0.0)
+    moment_z = wp.vec3(0.0)
     for a in range(3):
         for c in range(3):
             for e in range(3):
-                weight = wx[a] * wy[c] * wz[e]
-                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
-                g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
-                new_v += g_v * weight
-                # APIC / MLS affine field (Hu et al. 2018, Eq. 28), D^-1 = 4 / dx^2
-                new_C += wp.outer(g_v, dpos) * (weight * 4.0 * inv_dx * inv_dx)
+                node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                g_w = grid_v[node] * (wx[a] * wy[c] * wz[e])
+                new_v += g_w
+                moment_x += g_w * float(a)
+                moment_y += g_w * float(c)
+                moment_z += g_w * float(e)
+    new_C = (wp.mat33(moment_x[0], moment_y[0], moment_z[0], moment_x[1], moment_y[1], moment_z[1],
+                      moment_x[2], moment_y[2], moment_z[2]) - wp.outer(new_v, fx)) * (4.0 * inv_dx)
     x_new = x_i + new_v * own_step(own_dt, batch, dt)
     if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
@@ -682,8 +695,8 @@ def g2p_adjoint(
         for a in range(3):
             for c in range(3):
                 for e in range(3):
-                    g_v = grid_v[offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)]
-                    new_v += g_v * (wx[a] * wy[c] * wz[e])
+                    node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                    new_v += grid_v[node] * (wx[a] * wy[c] * wz[e])
         x_new = x_i + new_v * step
         raw = wp.vec3(param(ground_normal, 3 * batch, i), param(ground_normal, 3 * batch + 1, i),
                       param(ground_normal, 3 * batch + 2, i))
@@ -707,28 +720,33 @@ def g2p_adjoint(
                 for d in range(3):
                     add_param(adj_ground_normal, 3 * batch + d, i, adj_raw[d])
     adj_v = adj_v + adj_x * step
-    adj_C = adj_dst_C[i] * (4.0 * inv_dx * inv_dx)  # new_C sums outer(g, dpos) w 4 / dx^2
+    # C = D^-1 sum w g dpos^T: node g's adjoint is w (adj_v + adj_C dpos), dpos = (o - fx) dx,
+    # with adj_C dpos = adj_C o dx - adj_C fx dx summed by the offset's components
+    adj_C = adj_dst_C[i] * (4.0 * inv_dx)
+    adj_o = adj_v - adj_C * fx  # at offset (0, 0, 0)
+    adj_c0 = wp.vec3(adj_C[0, 0], adj_C[1, 0], adj_C[2, 0])  # per unit offset along x
+    adj_c1 = wp.vec3(adj_C[0, 1], adj_C[1, 1], adj_C[2, 1])
+    adj_c2 = wp.vec3(adj_C[0, 2], adj_C[1, 2], adj_C[2, 2])
     adj_wx = wp.vec3(0.0)
     adj_wy = wp.vec3(0.0)
     adj_wz = wp.vec3(0.0)
-    adj_fx = wp.vec3(0.0)
+    gathered = wp.vec3(0.0)  # sum w g, whose fx part of C gives fx's adjoint
     run = run_start(offset + node_index(base[0], base[1], base[2], dims))
     for a in range(3):
         for c in range(3):
             for e in range(3):
                 weight = wx[a] * wy[c] * wz[e]
-                dpos = (wp.vec3(float(a), float(c), float(e)) - fx) * dx
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
                 g_v = grid_v[node]
-                adj_Cd = adj_C * dpos
-                add(adj_grid_v, node, run, (adj_v + adj_Cd) * weight)
-                adj_w = wp.dot(adj_v + adj_Cd, g_v)
-                adj_fx -= wp.transpose(adj_C) * g_v * (weight * dx)
+                adj_g = adj_o + adj_c0 * float(a) + adj_c1 * float(c) + adj_c2 * float(e)
+                add(adj_grid_v, node, run, adj_g * weight)
+                adj_w = wp.dot(adj_g, g_v)
+                gathered += g_v * weight
                 adj_wx[a] = adj_wx[a] + adj_w * wy[c] * wz[e]
                 adj_wy[c] = adj_wy[c] + adj_w * wx[a] * wz[e]
                 adj_wz[e] = adj_wz[e] + adj_w * wx[a] * wy[c]
-    adj_fx += wp.vec3(wp.dot(adj_wx, bspline_slopes(fx[0])), wp.dot(adj_wy, bspline_slopes(fx[1])),
-                      wp.dot(adj_wz, bspline_slopes(fx[2])))
+    adj_fx = wp.vec3(wp.dot(adj_wx, bspline_slopes(fx[0])), wp.dot(adj_wy, bspline_slopes(fx[1])),
+                     wp.dot(adj_wz, bspline_slopes(fx[2]))) - wp.transpose(adj_C) * gathered
     adj_src_x[i] = adj_src_x[i] + adj_x + adj_fx * inv_dx
 
 
