@@ -535,10 +535,15 @@ def test_a_gpu_spreads_particles_over_at_least_spread_blocks_where_it_has_the_wa
 
 
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:
-    """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding."""
+    """Equal to the bit on the CPU; on a GPU, whose float atomics add in no fixed order, to rounding.
+
+    On an H100 twelve backward passes of one rollout of ``_two_balls`` spread by up to 4e-6 of a
+    gradient's largest entry (the nu gradient's smaller entry by 1e-4 of itself), so the GPU's
+    bound is 2e-5 of it.
+    """
     if DEVICE == "cpu":
         return np.array_equal(a, b)
-    return np.allclose(a, b, rtol=1e-4, atol=1e-6 * np.abs(a).max())
+    return np.allclose(a, b, rtol=1e-4, atol=2e-5 * np.abs(a).max())
 
 
 @wp.kernel
