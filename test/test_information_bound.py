@@ -25,10 +25,12 @@ def test_the_surface_of_a_lattice_cube_is_all_but_its_interior():
 
 
 @pytest.mark.slow
-def test_the_bound_of_a_sample_bag_resimulates_it_exactly_and_orders_its_bounds():
+def test_the_bound_of_a_sample_bag_resimulates_it_to_rounding_and_orders_its_bounds():
     result = information_bound.bound(ROOT / "bags" / "pressed_cube", sigma=1.0, frames=3,
                                      step_scale=1.0, device="cpu")
-    assert result["resimulation_max_diff_mm"] == 0.0
+    # the recorder's simulator; float32 sums reordered since the recording move it by a few
+    # rounding errors of a position (1.5e-5 mm after 93354f8), a wrong scene by millimetres
+    assert result["resimulation_max_diff_mm"] < 1e-3
     assert result["parameters"] == ["cube.E", "cube.nu"]
     for observed in ("volume", "surface"):
         for name in result["parameters"]:
