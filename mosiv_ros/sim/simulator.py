@@ -749,7 +749,8 @@ class Simulator:
         self._graphs: dict[tuple, wp.context.Graph] = {}
         self._seen: set[tuple] = set()
         self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
-        self._adjoint_commands: dict[tuple, tuple[wp.Kernel, object, list, list]] = {}
+        # Warp's adjoints (kernel, hooks, packed parameters, packed values) or written ones (kernel, command, values)
+        self._adjoint_commands: dict[tuple, tuple] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
         self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
                                     wp.zeros(self.n_batch, dtype=int, device=d))
