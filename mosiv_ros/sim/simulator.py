@@ -236,6 +236,11 @@ class _Arena:
             offsets.append(offsets[-1] + -(-n * wp.types.type_size_in_bytes(dtype) // cls.ALIGN) * cls.ALIGN)
         return offsets
 
+    @classmethod
+    def raw(cls, nbytes: int) -> tuple[int, type]:
+        """The spec of ``nbytes`` (a multiple of ``ALIGN``) of raw memory: that many bytes in ``WORD``s."""
+        return nbytes // cls.ALIGN, cls.WORD
+
     def zero(self) -> None:
         self.memory.zero_()
 
@@ -579,6 +584,10 @@ class _FrameTape:
     def prefix(self, n_sub: int) -> int:
         """The bytes of a frame of ``n_sub`` substeps (values, or gradients)."""
         return (n_sub + 1) * self.state_bytes + n_sub * self.grid_bytes
+
+    def words(self, n_sub: int) -> int:
+        """``prefix`` in ``_Arena.WORD``s: what a copy of the frame's values counts."""
+        return _Arena.raw(self.prefix(n_sub))[0]
 
 
 def _bind(kernel: wp.Kernel, given: dict[str, object], scene: dict[str, object]) -> list:
@@ -1135,8 +1144,8 @@ class Simulator:
         """
         cleared = self.device != "cpu"
         if cleared:
-            after = (frame.prefix(n_sub) - frame.state_bytes) // _Arena.ALIGN
-            wp.array(ptr=frame.values.ptr + frame.state_bytes, dtype=_Arena.WORD, shape=(after,),
+            after, word = _Arena.raw(frame.prefix(n_sub) - frame.state_bytes)
+            wp.array(ptr=frame.values.ptr + frame.state_bytes, dtype=word, shape=(after,),
                      device=self.device, owner=False).zero_()
         tape = frame.tapes[n_sub] = wp.Tape()
         with tape:
@@ -1459,7 +1468,7 @@ class Simulator:
                 self._pose_colliders(work.colliders, start_frame + frame, n_sub, dt)
                 self._launch(("kept", n_sub, dt, frame == 0), partial(
                     self._record_kept, work, states[0] if frame == 0 else work.states[n_sub], n_sub, dt))
-                wp.copy(kept[frame], work.values, count=work.prefix(n_sub) // _Arena.ALIGN)
+                wp.copy(kept[frame], work.values, count=work.words(n_sub))
                 start, state = self._kept_states(kept[frame], work, n_sub)
                 if frame == 0:
                     checkpoints.append(start)
@@ -1527,7 +1536,7 @@ class Simulator:
         def prepare(index: int) -> _FrameTape:  # the host's part: frame ``index`` at its start
             frame = frames[index % len(frames)]
             if kept:
-                wp.copy(frame.values, kept[index], count=frame.prefix(n_sub) // _Arena.ALIGN)
+                wp.copy(frame.values, kept[index], count=frame.words(n_sub))
             else:
                 frame.states[0].copy_from(checkpoints[index])
             self._pose_colliders(frame.colliders, start + index, n_sub, dt)
@@ -1583,7 +1592,7 @@ class Simulator:
         grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
                                                 self._accelerated, True))[-1]
         # the arenas' sizes are multiples of ALIGN: in the frame's arenas they lie back to back
-        state, grid = (state_bytes // _Arena.ALIGN, _Arena.WORD), (grid_bytes // _Arena.ALIGN, _Arena.WORD)
+        state, grid = _Arena.raw(state_bytes), _Arena.raw(grid_bytes)
         specs = [state, grid] * capacity + [state]
         values, grads = _Arena(specs, d), _Arena(specs, d)
         memory = list(zip(values.arrays, grads.arrays, strict=True))
@@ -1642,8 +1651,8 @@ class Simulator:
     def _kept_states(self, block: wp.array, frame: _FrameTape, n_sub: int) -> tuple[_State, _State]:
         """The first and the last state of a frame of ``n_sub`` substeps kept in ``block``."""
         total = self.n_batch * self.n_particles
-        views = _Arena([((frame.prefix(n_sub) - frame.state_bytes) // _Arena.ALIGN, _Arena.WORD),
-                        (frame.state_bytes // _Arena.ALIGN, _Arena.WORD)], self.device, block).arrays
+        views = _Arena([_Arena.raw(frame.prefix(n_sub) - frame.state_bytes), _Arena.raw(frame.state_bytes)],
+                       self.device, block).arrays
         return (_State(total, self.device, False, (views[0], None)),
                 _State(total, self.device, False, (views[1], None)))
 
