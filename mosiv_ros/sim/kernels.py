@@ -37,9 +37,9 @@ is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU). Warp'
 not support dynamic loops that carry a differentiable value, so the differentiable sums over a
 node's fields are atomics in ``contact_totals``, and ``grid_update`` runs one thread per field
 node; the loops over a node's fields (``node_total``, ``present_fields``) give only thresholds
-and integers, and sit in functions, whose calls the adjoint replays as the forward ran them. Both passes launch over a
-box of nodes (``field_node``): the whole grid, or on the CPU, where every thread costs, the
-nodes the particles' stencils can reach (``Simulator._active_box``).
+and integers, and sit in functions, whose calls the adjoint replays as the forward ran them.
+Both passes launch over a box of nodes (``field_node``): the whole grid, or on the CPU, where
+every thread costs, the nodes the particles' stencils can reach (``Simulator._active_box``).
 """
 
 from __future__ import annotations
