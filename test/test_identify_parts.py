@@ -147,6 +147,34 @@ def test_a_known_loss_of_the_current_point_ranks_the_contenders_as_scoring_it_ag
                                                           current_loss=known)] == scored
 
 
+def test_on_the_cpu_the_best_candidates_are_not_rolled_out_again_as_contenders(monkeypatch):
+    problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"], frames=4)
+    search = Identifier(problem, settings).search
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    E, nu = (e.coordinate for e in search.identifier.entries)
+    current = np.array([E.to_u(3e4), nu.to_u(0.3)])
+    candidates = np.array([[E.to_u(value), nu.to_u(0.25)] for value in (4e3, 1.5e4, 2.5e4, 2e5)])
+    rows = []
+    scored = search.batch_object_losses
+
+    def counted(points, *args, **kwargs):
+        rows.append(len(points))
+        return scored(points, *args, **kwargs)
+
+    monkeypatch.setattr(search, "batch_object_losses", counted)
+    kept = search.best(current, candidates, velocity, [[0, 1]], keep=3)
+    assert rows == [4, 1]  # the candidates, then the current point alone (the composite is the best)
+    points = np.vstack([current[None], candidates])
+    alone = search.batch_losses(points, velocity, together=False)
+    order = np.argsort(alone)[:3]
+    assert [(u.tolist(), loss) for u, loss in kept] == [(points[i].tolist(), alone[i]) for i in order]
+    rows.clear()
+    again = search.best(current, candidates, velocity, [[0, 1]], keep=3, current_loss=alone[0])
+    assert rows == [4]  # every contender's loss known
+    assert [(u.tolist(), loss) for u, loss in again] == [(points[i].tolist(), alone[i]) for i in order]
+
+
 def test_the_fits_end_points_score_side_by_side_as_each_alone_on_the_fits_simulator():
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"], frames=4)
     identifier = Identifier(problem, settings)

@@ -135,7 +135,7 @@ class GlobalSearch:
         obs = fit.problem.observations
         frames = min(frames or obs.n_frames - 1, obs.n_frames - 1)
         cuda = fit.sim.device.startswith("cuda")
-        together = own or (cuda or substeps is not None if together is None else together)
+        together = self._together(together, substeps, own)
         fit.apply(candidates[0], velocity)  # the rows' common set-up: initial velocity, fixed values
         if fit.tensor_device is not None:  # built once, before threads share them
             obs.tensors(fit.tensor_device)
@@ -182,6 +182,14 @@ class GlobalSearch:
             return self._losses(candidates, velocity, frames, False, None, False)
         return (np.concatenate([total for total, *_ in results]),
                 np.concatenate([per for _, per, _ in results]))
+
+    def _together(self, together: bool | None, substeps: int | None, own: bool) -> bool:
+        """Whether ``_losses`` scores its rows in batches rather than each alone at its own time step."""
+        if own:
+            return True
+        if together is None:
+            return self.identifier.sim.device.startswith("cuda") or substeps is not None
+        return together
 
     def _costliest_first(self, candidates: np.ndarray) -> list[int]:
         """The rows of ``candidates`` by their substeps per frame, the most first (ties in order)."""
@@ -321,29 +329,40 @@ class GlobalSearch:
         step of its stiffest row); the contenders (``current``, the composite and the ``keep``
         best candidates) are then compared each at its own time step, as the gradient fit will
         see them (the loss of one parameter set differs by up to 10 % between time steps, more
-        than a search step gains); ``current_loss``, where given, is that of ``current`` (a
-        rollout repeats to the bit on the CPU, and scoring each row is independent of the others).
-        Best first, as (u, loss); empty if every candidate diverged.
+        than a search step gains). Only those not scored so already are rolled out again:
+        ``current`` when ``current_loss`` (its loss) is given, and on the CPU, whose batch scores
+        each candidate alone at its own step, the best candidates (a rollout repeats to the bit
+        on the CPU, and scoring each row is independent of the others). Best first, as (u, loss);
+        empty if every candidate diverged.
         """
         s = self.identifier.settings
         total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
         if np.all(np.isnan(total)):
             return []
-        ranked = [candidates[i] for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
-        composite = ranked[0].copy()
+        top = [i for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
+        composite = candidates[top[0]].copy()
         if not np.all(np.isnan(per)):
             for k, columns in enumerate(groups):
                 if columns and not np.all(np.isnan(per[:, k])):
                     composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
-        contenders = [current]
-        for u in [composite, *ranked]:
-            if not any(np.allclose(u, c) for c in contenders):
+        alone = not self._together(None, None, False)
+        contenders, losses = [current], [current_loss]
+        for u, loss in [(composite, None), *((candidates[i], total[i] if alone else None) for i in top)]:
+            same = next((j for j, c in enumerate(contenders) if np.allclose(u, c)), None)
+            if same is None:
                 contenders.append(u)
+                losses.append(loss)
+            elif losses[same] is None and np.array_equal(u, contenders[same]):
+                losses[same] = loss
         if len(contenders) == 1:
             return [(current.copy(), float(np.nanmin(total)))]
-        known = [] if current_loss is None else [current_loss]
-        losses = np.r_[known, self.batch_object_losses(np.array(contenders[len(known):]), velocity,
-                                                       s.search.frames, together=False)[0]]
+        missing = [i for i, loss in enumerate(losses) if loss is None]
+        if missing:
+            scored = self.batch_object_losses(np.array([contenders[i] for i in missing]), velocity,
+                                              s.search.frames, together=False)[0]
+            for i, loss in zip(missing, scored, strict=True):
+                losses[i] = loss
+        losses = np.array(losses, dtype=np.float64)
         order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
         return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
 
