@@ -449,6 +449,7 @@ class _Grid:
         # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
         self._field_grid = (n_batch * n_objects, *dims)
         self._batch_grid = (n_batch, *dims) if n_objects > 1 else None
+        self._cleared: dict[bool, tuple[wp.array, list[np.ndarray], list[np.ndarray]]] = {}
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
@@ -475,8 +476,7 @@ class _Grid:
     def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
         """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
         if self._cpu:
-            self._zero(self.tau, [self.m, self.p, self.a] + ([self.v] if self.v is not self.p else []),
-                       [self.present_m, self.present_p, self.present_mu])
+            self._zero(False)
         else:
             self._values.zero()
         self.box = box
@@ -484,25 +484,60 @@ class _Grid:
     def zero_grad(self) -> None:
         """Zero the gradients of ``arrays`` (see the class docstring)."""
         if self._cpu:
-            self._zero(self.tau.grad, [a.grad for a in (self.m, self.p, self.a, self.v)],
-                       [a.grad for a in (self.present_m, self.present_p, self.present_mu)])
+            self._zero(True)
         else:
             self._grads.zero()
 
-    def _zero(self, per_particle: wp.array, per_field_node: list[wp.array],
-              per_batch_node: list[wp.array]) -> None:
-        per_particle.zero_()
-        for arrays, shape in ((per_field_node, self._field_grid), (per_batch_node, self._batch_grid)):
+    def _zero(self, grads: bool) -> None:
+        """On the CPU: zero the stresses, and the per-node arrays (or their ``grads``) in ``box``."""
+        if grads not in self._cleared:
+            self._cleared[grads] = self._clearing(grads)
+        stress, grids, entries = self._cleared[grads]
+        stress.zero_()
+        for entry in entries:
+            entry[...] = 0
+        if self.box is not None:  # else as allocated
+            lo, size = self.box
+            inside = (slice(None), *(slice(start, start + n) for start, n in zip(lo, size, strict=True)))
+            for grid in grids:
+                grid[inside] = 0
+
+    def _clearing(self, grads: bool) -> tuple[wp.array, list[np.ndarray], list[np.ndarray]]:
+        """What ``_zero`` clears of the values, or of their ``grads``.
+
+        The stress array, the per-node arrays as numpy views shaped as grids (made once: making
+        a view costs about what clearing a box does), and the single contact entry of one
+        object. Arrays no effect uses (empty) are left out.
+        """
+        fields = [self.m, self.p, self.a] + ([self.v] if self.v is not self.p else [])
+        batch = [self.present_m, self.present_p, self.present_mu]
+        if grads:
+            fields, batch = [a.grad for a in fields], [a.grad for a in batch]
+        grids, entries = [], []
+        for arrays, shape in ((fields, self._field_grid), (batch, self._batch_grid)):
             for array in arrays:
-                if array.shape[0] == 0:  # an array no effect uses
+                if array.shape[0] == 0:
                     continue
-                if shape is None:  # the single contact entry of one object
-                    array.zero_()
-                elif self.box is not None:  # else as allocated
-                    lo, size = self.box
-                    values = array.numpy()
-                    values.reshape(shape + values.shape[1:])[
-                        (slice(None), *(slice(start, start + n) for start, n in zip(lo, size, strict=True)))] = 0
+                values = array.numpy()
+                if shape is None:
+                    entries.append(values)
+                else:
+                    grids.append(values.reshape(shape + values.shape[1:]))
+        return self.tau.grad if grads else self.tau, grids, entries
+
+
+@dataclass
+class _Command:
+    """A recorded CPU launch (``Simulator._run``).
+
+    The command, the arguments it holds, the (index, name) of those given by name at each
+    launch, and the thread count it holds.
+    """
+
+    command: wp.Launch
+    args: list
+    values: list[tuple[int, str]]
+    dim: int
 
 
 @dataclass(frozen=True)
@@ -757,7 +792,9 @@ class Simulator:
         self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
         self._graphs: dict[tuple, wp.context.Graph] = {}
         self._seen: set[tuple] = set()
-        self._commands: dict[tuple, tuple[wp.context.Launch, list, list[tuple[int, str]]]] = {}
+        self._commands: dict[tuple, _Command] = {}
+        self._box_args: tuple[tuple | None, dict[str, wp.vec3i]] = (None, {})
+        """The last substep's box of grid nodes, and the launch arguments that give it."""
         # Warp's adjoints (kernel, hooks, packed parameters, packed values) or written ones (kernel, command, values)
         self._adjoint_commands: dict[tuple, tuple] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
@@ -1040,33 +1077,37 @@ class Simulator:
         """Launch ``kernel`` over ``dim`` threads with its arguments found by name (``_bind``).
 
         On the CPU a launch repeats a recorded command (``wp.Launch``) of the same kernel and
-        bundles, with the values given by name set anew: packing all of a kernel's arguments
-        costs 12-50 us, about what a substep's small kernels take to run. The command keeps its
-        bundles, so their arrays outlive it. On a tape (``wp.context.runtime.tape``, the one
-        ``wp.launch`` records on) the launch is recorded as ``wp.launch`` records it.
+        bundles, with the values given by name set anew where they changed since its last
+        launch: packing all of a kernel's arguments costs 12-50 us, about what a substep's small
+        kernels take to run, and setting one about 4 us. The command keeps its bundles, so their
+        arrays outlive it. On a tape (``wp.context.runtime.tape``, the one ``wp.launch`` records
+        on) the launch is recorded as ``wp.launch`` records it.
         """
         if self.device != "cpu":
             wp.launch(kernel, dim=dim, inputs=_bind(kernel, given, self._scene), device=self.device)
             return
         labels = self._labels_of(kernel)
-        # a given value that is a parameter is set at each launch; a bundle picks the command
+        # a given value that is a parameter is set at a launch; a bundle picks the command
         key = (kernel, *((name, None if name in labels else value) for name, value in given.items()))
         recorded = self._commands.get(key)
         if recorded is None:
             args = _bind(kernel, given, self._scene)
             command = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
-            recorded = self._commands[key] = (command, args,
-                                              [(labels[n], n) for n in given if n in labels])
-        command, args, values = recorded
-        args = list(args)
-        for index, name in values:
-            args[index] = given[name]
-            command.set_param_at_index(index, given[name])
-        command.set_dim(dim)
-        command.launch()
+            recorded = self._commands[key] = _Command(command, args, [(labels[n], n) for n in given if n in labels],
+                                                      dim)
+        args = recorded.args  # the values the command holds
+        for index, name in recorded.values:
+            value = given[name]
+            if value is not args[index] and value != args[index]:  # an array compares by identity
+                args[index] = value
+                recorded.command.set_param_at_index(index, value)
+        if dim != recorded.dim:
+            recorded.dim = dim
+            recorded.command.set_dim(dim)
+        recorded.command.launch()
         tape = wp.context.runtime.tape
         if tape is not None:
-            tape.record_launch(kernel, dim, 0, args, [], self.device)
+            tape.record_launch(kernel, dim, 0, list(args), [], self.device)
 
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float,
                  colliders: _Colliders | None = None, own: bool = False, cleared: bool = False) -> None:
@@ -1095,7 +1136,9 @@ class Simulator:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
         n_box = view.n_box
-        box = {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)}
+        if self._box_args[0] != (box_lo, box_dims):  # the same objects while the box stays (``_run``)
+            self._box_args = ((box_lo, box_dims), {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)})
+        box = self._box_args[1]
         if K > 1:
             self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **steps)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
@@ -1116,14 +1159,16 @@ class Simulator:
         if self.device != "cpu":
             return (0, 0, 0), self.dims
         x = np.ascontiguousarray(state.x.numpy().T)  # a row reduces 20x faster than a column
-        span = np.array([x.min(axis=1), x.max(axis=1)], dtype=np.float64)
-        if not np.all(np.isfinite(span)):
+        low, high = x.min(axis=1).tolist(), x.max(axis=1).tolist()  # float64, as Python floats
+        if not all(map(math.isfinite, low + high)):
             return (0, 0, 0), self.dims  # a diverging state: leave it to the frame's check
-        top = np.asarray(self.dims) - 3
-        base = np.clip(np.floor((span - self.lo) / self.dx - 0.5).astype(np.int64), 0, top)
-        box_lo = np.maximum(base[0] - 1, 0)
-        box_hi = np.minimum(base[1] + 3, top + 2)  # the stencil's last node, plus one
-        return tuple(int(v) for v in box_lo), tuple(int(v) for v in box_hi - box_lo + 1)
+        box_lo, box_dims = [], []
+        for first, last, corner, n in zip(low, high, self.lo.tolist(), self.dims, strict=True):
+            top = n - 3  # in float64 and in this order, as the stencil's corner is clamped
+            base = [min(max(math.floor((v - corner) / self.dx - 0.5), 0), top) for v in (first, last)]
+            box_lo.append(max(base[0] - 1, 0))
+            box_dims.append(min(base[1] + 3, top + 2) - box_lo[-1] + 1)  # the stencil's last node, plus one
+        return tuple(box_lo), tuple(box_dims)
 
     def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
                dt: float, own: bool = False) -> None:
