@@ -15,9 +15,10 @@ rollouts of the first ``search.frames`` frames (0 = all):
   its own parameters, so 32 samples search each object's few dimensions rather than all
   objects' together), whichever of the two fits better (``best``);
 - the ``search.starts`` best points of this first round are the starts: each then goes through
-  ``search.rounds`` more such rounds, each in a box 3x narrower than the last around its best
-  so far (samples that move every coordinate at once follow the valleys of coupled parameters,
-  such as E and nu, which one-coordinate-at-a-time passes stall in), and the lowest end wins.
+  ``search.rounds`` more such rounds (the starts' rounds side by side, their contenders scored
+  together), each in a box 3x narrower than the last around its best so far (samples that
+  move every coordinate at once follow the valleys of coupled parameters, such as E and nu,
+  which one-coordinate-at-a-time passes stall in), and the lowest end wins.
   Several starts keep other basins alive: coupled parameters can explain the same motion twice
   (on elastic_on_plastic one start narrowed onto a clay yield stress of 456 Pa with a ground
   friction of 1.9, at a higher loss than the true 800 Pa and 0.5), and the first round's best
@@ -33,6 +34,7 @@ uncertainty's, ``identify.estimates``). What it is not for: gradient steps
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import os
@@ -335,44 +337,65 @@ class GlobalSearch:
         on the CPU, and scoring each row is independent of the others). Best first, as (u, loss);
         empty if every candidate diverged.
         """
+        return self.best_of([(current, candidates, current_loss)], velocity, groups, keep)[0]
+
+    def best_of(self, rounds: list[tuple[np.ndarray, np.ndarray, float | None]], velocity: np.ndarray,
+                groups: list[list[int]], keep: int = 1) -> list[list[tuple[np.ndarray, float]]]:
+        """``best`` of each of several rounds (current, candidates, current_loss), side by side.
+
+        Each round's candidates are scored in a batch of their own, and the contenders of all
+        rounds together: on a GPU a batch of a few rows costs what its stiffest row's launches
+        do, so the rounds of the search's starts share one.
+        """
         s = self.identifier.settings
-        total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
-        if np.all(np.isnan(total)):
-            return []
-        top = [i for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
-        composite = candidates[top[0]].copy()
-        if not np.all(np.isnan(per)):
-            for k, columns in enumerate(groups):
-                if columns and not np.all(np.isnan(per[:, k])):
-                    composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
         alone = not self._together(None, None, False)
-        contenders, losses = [current], [current_loss]
-        for u, loss in [(composite, None), *((candidates[i], total[i] if alone else None) for i in top)]:
-            same = next((j for j, c in enumerate(contenders) if np.allclose(u, c)), None)
-            if same is None:
-                contenders.append(u)
-                losses.append(loss)
-            elif losses[same] is None and np.array_equal(u, contenders[same]):
-                losses[same] = loss
-        if len(contenders) == 1:
-            return [(current.copy(), float(np.nanmin(total)))]
-        missing = [i for i, loss in enumerate(losses) if loss is None]
+        pending: list[tuple[list[np.ndarray], list[float | None]]] = []
+        for current, candidates, current_loss in rounds:
+            total, per = self.batch_object_losses(candidates, velocity, s.search.frames)
+            if np.all(np.isnan(total)):
+                pending.append(([], []))
+                continue
+            top = [i for i in np.argsort(total)[:keep] if not np.isnan(total[i])]
+            composite = candidates[top[0]].copy()
+            if not np.all(np.isnan(per)):
+                for k, columns in enumerate(groups):
+                    if columns and not np.all(np.isnan(per[:, k])):
+                        composite[columns] = candidates[int(np.nanargmin(per[:, k])), columns]
+            contenders, losses = [current], [current_loss]
+            for u, loss in [(composite, None), *((candidates[i], total[i] if alone else None) for i in top)]:
+                same = next((j for j, c in enumerate(contenders) if np.allclose(u, c)), None)
+                if same is None:
+                    contenders.append(u)
+                    losses.append(loss)
+                elif losses[same] is None and np.array_equal(u, contenders[same]):
+                    losses[same] = loss
+            if len(contenders) == 1:  # nothing to compare: the batch's best loss goes with it
+                losses = [float(np.nanmin(total))]
+            pending.append((contenders, losses))
+        missing = [(r, i) for r, (_, losses) in enumerate(pending) for i, loss in enumerate(losses) if loss is None]
         if missing:
-            scored = self.batch_object_losses(np.array([contenders[i] for i in missing]), velocity,
+            scored = self.batch_object_losses(np.array([pending[r][0][i] for r, i in missing]), velocity,
                                               s.search.frames, together=False)[0]
-            for i, loss in zip(missing, scored, strict=True):
-                losses[i] = loss
-        losses = np.array(losses, dtype=np.float64)
-        order = [i for i in np.argsort(losses) if not np.isnan(losses[i])]
-        return [(contenders[i].copy(), float(losses[i])) for i in order[:keep]]
+            for (r, i), loss in zip(missing, scored, strict=True):
+                pending[r][1][i] = loss
+        found = []
+        for contenders, losses in pending:
+            values = np.array(losses, dtype=np.float64)
+            order = [i for i in np.argsort(values) if not np.isnan(values[i])]
+            found.append([(contenders[i].copy(), float(values[i])) for i in order[:keep]])
+        return found
 
     def run(self, velocity: np.ndarray, checkpoint: Checkpoint | None = None) -> np.ndarray:
         """Latin-hypercube rounds in ever narrower boxes (module docstring); return u, applied.
 
-        With ``checkpoint``, each finished round is saved (the points it kept with their losses,
-        and the sampler's state after it), and the rounds a stopped run of the same fit finished
-        are taken from there instead of being scored again: the search ends where an
-        uninterrupted one does.
+        The starts' later rounds run side by side (``best_of``): round r of every start, then
+        round r + 1. Their samples are drawn, after the first round's, as if the starts ran one
+        after another.
+
+        With ``checkpoint``, each finished round is saved (the points it kept with their losses;
+        for the first, the sampler's state after it), and the rounds a stopped run of the same
+        fit finished are taken from there instead of being scored again: the search ends where
+        an uninterrupted one does.
         """
         fit = self.identifier
         s = fit.settings
@@ -384,60 +407,73 @@ class GlobalSearch:
         rng = np.random.default_rng(0)
         ranged = np.array([e.name in SEARCH_RANGES for e in fit.entries])
         finished = checkpoint.load_search() if checkpoint is not None else []
+        # a later round's entry holds a list of kept points per start ("starts")
+        finished = finished[:1] + list(itertools.takewhile(lambda done: "starts" in done, finished[1:]))
         if finished:
             _LOG.info("resuming the search from %s: %d rounds done", checkpoint.directory, len(finished))
         rounds_done: list[dict] = []
 
-        def round_(centre: np.ndarray, number: int, keep: int,
-                   loss: float | None = None) -> list[tuple[np.ndarray, float]]:
-            if len(rounds_done) < len(finished):  # finished before the stop
-                kept = finished[len(rounds_done)]
-                rng.bit_generator.state = kept["sampler"]
-                rounds_done.append(kept)
-                return [(np.array(u, dtype=np.float64), float(value)) for u, value in kept["kept"]]
-            found = sampled(centre, number, keep, loss)
-            rounds_done.append({"kept": [(u.tolist(), value) for u, value in found],
-                                "sampler": rng.bit_generator.state})
+        def kept(values: list) -> list[tuple[np.ndarray, float]]:
+            return [(np.array(u, dtype=np.float64), float(value)) for u, value in values]
+
+        def saved(entry: dict) -> None:
+            rounds_done.append(entry)
             if checkpoint is not None:
                 checkpoint.save_search(rounds_done)
-            return found
 
-        def sampled(centre: np.ndarray, number: int, keep: int,
-                    loss: float | None) -> list[tuple[np.ndarray, float]]:
+        def unit() -> np.ndarray:
+            # Latin hypercube: every coordinate's range cut into as many strata as samples,
+            # one sample per stratum, strata paired at random across coordinates
+            strata = np.stack([rng.permutation(s.search.samples) for _ in u], axis=1)
+            return (strata + rng.random(strata.shape)) / s.search.samples
+
+        def samples(centre: np.ndarray, number: int, draw: np.ndarray) -> np.ndarray:
             half = 0.5 * (hi - lo) / 3.0**number
             box_lo, box_hi = (lo, hi) if number == 0 else (centre - half, centre + half)
             box_lo = np.where(ranged, np.maximum(box_lo, lo), box_lo)
             box_hi = np.where(ranged, np.minimum(box_hi, hi), box_hi)
-            # Latin hypercube: every coordinate's range cut into as many strata as samples,
-            # one sample per stratum, strata paired at random across coordinates
-            strata = np.stack([rng.permutation(s.search.samples) for _ in centre], axis=1)
-            unit = (strata + rng.random(strata.shape)) / s.search.samples
-            return self.best(centre, box_lo + (box_hi - box_lo) * unit, velocity, per_object, keep, loss)
+            return box_lo + (box_hi - box_lo) * draw
 
-        def searched(done: int) -> None:  # rounds of samples scored, of ``rounds``
-            if done < len(finished):  # a resumed search reports from where it stopped
+        restored = 0  # rounds of one start's samples that the checkpoint holds
+
+        def searched(done: int) -> None:  # rounds of one start's samples scored, of ``rounds``
+            if done < restored:  # a resumed search reports from where it stopped
                 return
             fit.report({"phase": "search", "done": done * s.search.samples,
                         "total": rounds * s.search.samples})
 
         if s.search.samples > 0:
             rounds = 1 + max(1, s.search.starts) * s.search.rounds  # fewer if starts diverge
+            restored = 1 if finished else 0
             searched(0)
             # the first round's best points are the starts: each narrows on its own basin
-            starts = round_(u, 0, max(1, s.search.starts))
-            rounds = 1 + len(starts) * s.search.rounds
+            if finished:
+                rng.bit_generator.state = finished[0]["sampler"]
+                rounds_done.append(finished[0])
+                ends = kept(finished[0]["kept"])
+            else:
+                ends = self.best(u, samples(u, 0, unit()), velocity, per_object, max(1, s.search.starts))
+                saved({"kept": [(point.tolist(), value) for point, value in ends], "sampler": rng.bit_generator.state})
+            n = len(ends)
+            rounds = 1 + n * s.search.rounds
+            restored = 1 + (len(finished) - 1) * n if finished else 0
             searched(1)
-            ends = []
-            for k, (start, loss) in enumerate(starts):
-                for number in range(1, s.search.rounds + 1):
-                    found = round_(start, number, 1, loss)
-                    if found:
-                        start, loss = found[0]
-                    searched(1 + k * s.search.rounds + number)
-                _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, len(starts), loss,
-                          fit.values_of(start))
-                ends.append((loss, start))
+            draws = [[unit() for _ in range(s.search.rounds)] for _ in ends]
+            for number in range(1, s.search.rounds + 1 if ends else 1):  # no starts: every sample diverged
+                if len(rounds_done) < len(finished):  # finished before the stop
+                    entry = finished[len(rounds_done)]
+                    rounds_done.append(entry)
+                    found = [kept(values) for values in entry["starts"]]
+                else:
+                    found = self.best_of([(start, samples(start, number, draws[k][number - 1]), loss)
+                                          for k, (start, loss) in enumerate(ends)], velocity, per_object)
+                    saved({"starts": [[(point.tolist(), value) for point, value in f] for f in found]})
+                ends = [f[0] if f else end for f, end in zip(found, ends, strict=True)]
+                for k in range(n):
+                    searched(1 + (number - 1) * n + k + 1)
+            for k, (start, loss) in enumerate(ends):
+                _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, n, loss, fit.values_of(start))
             if ends:
-                u = min(ends, key=lambda end: end[0])[1]
+                u = min(ends, key=lambda end: end[1])[0]
         fit.apply(u, velocity)
         return u
