@@ -151,6 +151,19 @@ def test_a_known_loss_of_the_current_point_ranks_the_contenders_as_scoring_it_ag
                                                           current_loss=known)] == scored
 
 
+def _rows_scored(search, monkeypatch) -> list[int]:
+    """The row counts of ``search``'s batched-loss calls from now on (the calls run as before)."""
+    rows = []
+    scored = search.batch_object_losses
+
+    def counted(points, *args, **kwargs):
+        rows.append(len(points))
+        return scored(points, *args, **kwargs)
+
+    monkeypatch.setattr(search, "batch_object_losses", counted)
+    return rows
+
+
 @pytest.mark.skipif(DEVICE != "cpu", reason="losses to the bit, and the CPU's scoring: each row alone at its own step")
 def test_on_the_cpu_the_best_candidates_are_not_rolled_out_again_as_contenders(monkeypatch):
     problem, settings = _cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"], frames=4)
@@ -160,14 +173,7 @@ def test_on_the_cpu_the_best_candidates_are_not_rolled_out_again_as_contenders(m
     E, nu = (e.coordinate for e in search.identifier.entries)
     current = np.array([E.to_u(3e4), nu.to_u(0.3)])
     candidates = np.array([[E.to_u(value), nu.to_u(0.25)] for value in (4e3, 1.5e4, 2.5e4, 2e5)])
-    rows = []
-    scored = search.batch_object_losses
-
-    def counted(points, *args, **kwargs):
-        rows.append(len(points))
-        return scored(points, *args, **kwargs)
-
-    monkeypatch.setattr(search, "batch_object_losses", counted)
+    rows = _rows_scored(search, monkeypatch)
     kept = search.best(current, candidates, velocity, [[0, 1]], keep=3)
     assert rows == [4, 1]  # the candidates, then the current point alone (the composite is the best)
     points = np.vstack([current[None], candidates])
@@ -190,14 +196,7 @@ def test_rounds_side_by_side_score_their_contenders_in_one_batch_and_end_as_each
     rounds = [(np.array([coordinate.to_u(E)]), np.array([[coordinate.to_u(c)] for c in candidates]), None)
               for E, candidates in ((3e4, (4e3, 1.5e4, 2.5e4)), (8e3, (6e3, 1e4, 1.8e4)))]
     alone = [search.best(current, candidates, velocity, [[0]], keep=2) for current, candidates, _ in rounds]
-    rows = []
-    scored = search.batch_object_losses
-
-    def counted(points, *args, **kwargs):
-        rows.append(len(points))
-        return scored(points, *args, **kwargs)
-
-    monkeypatch.setattr(search, "batch_object_losses", counted)
+    rows = _rows_scored(search, monkeypatch)
     together = search.best_of(rounds, velocity, [[0]], keep=2)
     assert rows == [3, 3, 2]  # each round's candidates, then both current points in one batch
     assert [[(u.tolist(), loss) for u, loss in found] for found in together] == \
