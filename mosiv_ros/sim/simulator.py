@@ -30,7 +30,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -528,16 +528,31 @@ class _Grid:
 
 @dataclass
 class _Command:
-    """A recorded CPU launch (``Simulator._run``).
+    """A recorded CPU launch (``Simulator._run``, ``Simulator._cpu_written``).
 
-    The command, the arguments it holds, the (index, name) of those given by name at each
-    launch, and the thread count it holds.
+    The command, the arguments and the thread count it holds, and for ``_run`` the (index,
+    name) of the arguments given by name at each launch.
     """
 
     command: wp.Launch
     args: list
-    values: list[tuple[int, str]]
     dim: int
+    named: list[tuple[int, str]] = field(default_factory=list)
+
+    def launch(self, values: Iterable[tuple[int, object]], dim: int) -> None:
+        """Launch over ``dim`` threads with the (index, value) ``values`` set where they changed.
+
+        Setting an argument costs about 4 us on the CPU, about what a substep's small kernels
+        take to run; an array compares by identity.
+        """
+        for index, value in values:
+            if value is not self.args[index] and value != self.args[index]:
+                self.args[index] = value
+                self.command.set_param_at_index(index, value)
+        if dim != self.dim:
+            self.dim = dim
+            self.command.set_dim(dim)
+        self.command.launch()
 
 
 @dataclass(frozen=True)
@@ -795,8 +810,8 @@ class Simulator:
         self._commands: dict[tuple, _Command] = {}
         self._box_args: tuple[tuple | None, dict[str, wp.vec3i]] = (None, {})
         """The last substep's box of grid nodes, and the launch arguments that give it."""
-        # Warp's adjoints (kernel, hooks, packed parameters, packed values) or written ones (kernel, command, values)
-        self._adjoint_commands: dict[tuple, tuple] = {}
+        # Warp's adjoints (kernel, hooks, packed parameters, packed values) or written ones
+        self._adjoint_commands: dict[tuple, tuple | _Command] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
         self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
                                     wp.zeros(self.n_batch, dtype=int, device=d))
@@ -1093,21 +1108,12 @@ class Simulator:
         if recorded is None:
             args = _bind(kernel, given, self._scene)
             command = wp.launch(kernel, dim=dim, inputs=args, device=self.device, record_cmd=True)
-            recorded = self._commands[key] = _Command(command, args, [(labels[n], n) for n in given if n in labels],
-                                                      dim)
-        args = recorded.args  # the values the command holds
-        for index, name in recorded.values:
-            value = given[name]
-            if value is not args[index] and value != args[index]:  # an array compares by identity
-                args[index] = value
-                recorded.command.set_param_at_index(index, value)
-        if dim != recorded.dim:
-            recorded.dim = dim
-            recorded.command.set_dim(dim)
-        recorded.command.launch()
+            recorded = self._commands[key] = _Command(command, args, dim,
+                                                      [(labels[n], n) for n in given if n in labels])
+        recorded.launch(((index, given[name]) for index, name in recorded.named), dim)
         tape = wp.context.runtime.tape
         if tape is not None:
-            tape.record_launch(kernel, dim, 0, list(args), [], self.device)
+            tape.record_launch(kernel, dim, 0, list(recorded.args), [], self.device)
 
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float,
                  colliders: _Colliders | None = None, own: bool = False, cleared: bool = False) -> None:
@@ -1294,20 +1300,14 @@ class Simulator:
     def _cpu_written(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
         """Launch the written adjoint ``kernel`` with ``args`` on the CPU (``tape`` unused).
 
-        Its command is kept under ``key`` and only an argument that is not the object set last
-        time is set again, as ``_cpu_adjoint`` does for Warp's adjoints.
+        Its command is kept under ``key`` and an argument is set again only where it changed
+        (``_Command``), as ``_cpu_adjoint`` does for Warp's adjoints.
         """
         kept = self._adjoint_commands.get(key)
-        if kept is None or kept[0] is not kernel:
+        if not isinstance(kept, _Command) or kept.command.kernel is not kernel:
             command = wp.launch(kernel, dim, inputs=args, device=self.device, record_tape=False, record_cmd=True)
-            kept = self._adjoint_commands[key] = (kernel, command, list(args))
-        _, command, packed = kept
-        for i, value in enumerate(args):
-            if value is not packed[i]:
-                command.set_param_at_index(i, value)
-                packed[i] = value
-        command.set_dim(dim)
-        command.launch()
+            kept = self._adjoint_commands[key] = _Command(command, list(args), dim)
+        kept.launch(enumerate(args), dim)
 
     def _cpu_adjoint(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
         """Run the adjoint of one recorded CPU launch of ``kernel`` with arguments ``args``.
