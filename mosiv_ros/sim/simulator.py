@@ -1318,8 +1318,8 @@ class Simulator:
         object packed last time is packed again: packing a kernel's arguments and their
         adjoints costs about what a substep's small kernels take to run (``_run``).
         """
-        kept = self._adjoint_commands.get(key)
-        if kept is None or kept[0] is not kernel:
+        kept = self._adjoint_commands.get(key)  # a key's place on a tape may hold another kernel now
+        if not isinstance(kept, tuple) or kept[0] is not kernel:
             hooks = kernel.module.load(self.device).get_kernel_hooks(kernel)
             kept = self._adjoint_commands[key] = (kernel, hooks, [None] * (1 + 2 * len(args)),
                                                   [_UNPACKED] * len(args))
