@@ -14,6 +14,13 @@ particle-substeps per second (particles x substeps / wall time). Peak memory: GP
 drop of the device's free memory while the configuration ran; CPU, the subprocess's peak resident
 set size. A ``frames_scaling`` entry repeats forward+backward of the middle configuration with
 twice the frames, to show memory grows with frames (checkpoints), not substeps.
+
+``--batch B`` (B > 1) measures the search's case instead: B parameter sets of each scene in one
+batched rollout, Young's modulus spread log-uniformly over a decade up to the single scene's
+(so that the batch steps at that scene's time step), forward only (the search takes no
+gradients); throughput counts every row's particles.
+
+    python benchmarks/sim_throughput.py --device cuda:0 --particles 3000 --objects 1 2 --batch 32
 """
 
 from __future__ import annotations
@@ -27,8 +34,11 @@ import sys
 import time
 from pathlib import Path
 
+STIFFEST = 5e4
+"""Young's modulus (Pa) of the blocks; a batch's stiffest row."""
 
-def build(n_particles: int, n_objects: int, device: str, tape_memory: float):
+
+def build(n_particles: int, n_objects: int, device: str, tape_memory: float, batch: int = 1):
     import numpy as np
 
     from mosiv_ros.sim import Ground, ObjectModel, Particles, SimConfig, Simulator, domain_around
@@ -45,15 +55,21 @@ def build(n_particles: int, n_objects: int, device: str, tape_memory: float):
     lo, hi = domain_around(x, dx, margin=0.05, floor=0.1)
     config = SimConfig(dx=dx, lo=lo, hi=hi, frame_dt=1 / 30, ground=Ground(height=0.1),
                        device=device, max_speed=2.0, tape_memory=tape_memory)
-    objects = [ObjectModel(f"block{k}", "elastic", {"E": 5e4}) for k in range(n_objects)]
-    return Simulator(objects, Particles(x=x, volume=spacing**3, object_index=index), config)
+    objects = [ObjectModel(f"block{k}", "elastic", {"E": STIFFEST}) for k in range(n_objects)]
+    sim = Simulator(objects, Particles(x=x, volume=spacing**3, object_index=index), config, n_batch=batch)
+    if batch > 1:  # the search's rows: moduli over a decade, the stiffest the single scene's
+        sim.params.set("E", (STIFFEST * np.logspace(-1, 0, batch))[:, None])
+    return sim
 
 
-def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_memory: float) -> dict:
+def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_memory: float,
+            batch: int = 1) -> dict:
     import numpy as np
     import warp as wp
 
-    sim = build(n_particles, n_objects, device, tape_memory)
+    sim = build(n_particles, n_objects, device, tape_memory, batch)
+    if batch > 1:
+        return run_batch(sim, frames)
     cuda = sim.device.startswith("cuda")
     free0 = wp.get_device(sim.device).free_memory if cuda else 0
     lowest = [free0]
@@ -95,6 +111,20 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
     }
 
 
+def run_batch(sim, frames: int) -> dict:
+    """``run_one`` for a batch of parameter sets: the forward only, as the search runs it."""
+    for _ in range(2):  # compilation; the frame's CUDA graph is captured on its second run
+        sim.rollout(frames)
+    n_sub, _ = sim.time_step()
+    start = time.perf_counter()
+    sim.rollout(frames)
+    forward = time.perf_counter() - start
+    work = sim.n_batch * sim.n_particles * n_sub * frames
+    return {"particles": sim.n_particles, "objects": sim.n_objects, "batch": sim.n_batch,
+            "grid_nodes": sim.n_nodes * sim.n_objects, "frames": frames, "substeps_per_frame": n_sub,
+            "device": sim.device, "forward_s": forward, "forward_particle_substeps_per_s": work / forward}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--device", default="auto")
@@ -105,19 +135,22 @@ def main() -> int:
                         help="SimConfig.tape_memory, GB (default 0: every frame recomputed by the "
                              "backward, memory growing with frames, not substeps)")
     parser.add_argument("--out", type=Path, default=None, help="write the JSON here too")
+    parser.add_argument("--batch", type=int, default=1,
+                        help="parameter sets in one batched rollout, forward only (the search's case)")
     parser.add_argument("--one", nargs=3, type=int, metavar=("N", "K", "FRAMES"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(*args.one, args.device, args.tape_memory)))
+        print(json.dumps(run_one(*args.one, args.device, args.tape_memory, args.batch)))
         return 0
     results = []
     for n in args.particles:
         for k in args.objects:
-            results.append(_child(n, k, args.frames, args.device, args.tape_memory))
+            results.append(_child(n, k, args.frames, args.device, args.tape_memory, args.batch))
             print(json.dumps(results[-1]), flush=True)
     middle = args.particles[len(args.particles) // 2]
-    scaling = [_child(middle, 1, f, args.device, args.tape_memory) for f in (args.frames, 2 * args.frames)]
+    scaling = [] if args.batch > 1 else [_child(middle, 1, f, args.device, args.tape_memory)
+                                         for f in (args.frames, 2 * args.frames)]
     report = {"benchmark": "sim_throughput", "host": platform.node(), "python": sys.version.split()[0],
               "results": results,
               "frames_scaling": [{"frames": r["frames"], "peak_memory_bytes": r["peak_memory_bytes"],
@@ -130,9 +163,10 @@ def main() -> int:
     return 0
 
 
-def _child(n: int, k: int, frames: int, device: str, tape_memory: float) -> dict:
+def _child(n: int, k: int, frames: int, device: str, tape_memory: float, batch: int = 1) -> dict:
     out = subprocess.run([sys.executable, __file__, "--device", device, "--tape-memory", str(tape_memory),
-                          "--one", str(n), str(k), str(frames)], capture_output=True, text=True, check=False)
+                          "--batch", str(batch), "--one", str(n), str(k), str(frames)],
+                         capture_output=True, text=True, check=False)
     if out.returncode != 0:
         # a negative code is the signal that ended it (-9: killed, typically out of memory)
         return {"particles": n, "objects": k, "frames": frames, "exit_code": out.returncode,
