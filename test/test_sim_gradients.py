@@ -259,7 +259,7 @@ def test_gradients_with_a_moving_collider_match_finite_differences():
 
 
 def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
-    """``kernels.g2p_adjoint`` against Warp's adjoint of ``kernels.g2p`` on random inputs.
+    """``kernels.g2p_adjoint`` against Warp's generated adjoint of ``kernels.g2p``'s function on random inputs.
 
     Two rows (the second past its own substeps, so it only copies its state), two objects'
     fields, a tilted ground plane that about half the particles end up under, random velocity,
@@ -271,6 +271,9 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
     from mosiv_ros.sim.params import REPLICAS
     from mosiv_ros.sim.simulator import _G2P_ADJOINTS
 
+    # kernels.g2p has no generated adjoint: the same function, built here with one
+    generated = wp.Kernel(kernels.g2p.func, key="g2p_with_generated_adjoint", module=wp.get_module(__name__),
+                          options={"enable_backward": True})
     g2p_args = [arg.label for arg in kernels.g2p.adj.args]
     assert [arg.label for arg in kernels.g2p_adjoint.adj.args] == [
         *g2p_args, *(f"adj_{name}" for name in _G2P_ADJOINTS)]
@@ -297,7 +300,7 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
     args = [given[name] for name in g2p_args[:-3]]
     tape = wp.Tape()
     with tape:
-        wp.launch(kernels.g2p, B * N, inputs=args, outputs=outputs, device=DEVICE)
+        wp.launch(generated, B * N, inputs=args, outputs=outputs, device=DEVICE)
     below = (outputs[0].numpy()[:N] @ np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0])
              < 0.45 + 1e-6)
     assert 0.2 < below.mean() < 0.8  # the ground's projection and its adjoint are exercised

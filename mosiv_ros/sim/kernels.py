@@ -536,7 +536,7 @@ def grid_update(
     grid_v[index] = wp.vec3(vx, vy, vz)
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def g2p(
     src_x: wp.array(dtype=wp.vec3),
     src_v: wp.array(dtype=wp.vec3),
@@ -564,7 +564,9 @@ def g2p(
     """Gather velocity and affine field from the particle's own object field and advect.
 
     The particle is also kept on or above the ground plane. A row whose frame is done (rows at
-    their own time steps) keeps its state. Its adjoint is ``g2p_adjoint``, not Warp's.
+    their own time steps) keeps its state. Its adjoint is ``g2p_adjoint``: Warp's is not
+    generated (it would only lengthen this module's build; the test that holds ``g2p_adjoint``
+    to it builds its own).
     """
     i = block_particle(wp.tid(), block_warps, src_x.shape[0])
     if i < 0:
@@ -750,7 +752,7 @@ def g2p_adjoint(
     adj_src_x[i] = adj_src_x[i] + adj_x + adj_fx * inv_dx
 
 
-@wp.kernel
+@wp.kernel(enable_backward=False)
 def check_state(
     state_x: wp.array(dtype=wp.vec3),
     state_v: wp.array(dtype=wp.vec3),
@@ -762,7 +764,7 @@ def check_state(
     hi: wp.vec3,
     stats: wp.array(dtype=float),
 ):
-    """Per (batch, object): [max speed, non-finite count, outside-domain count, min det b]."""
+    """Per (batch, object): [max speed, non-finite count, outside-domain count, min det b] (no adjoint)."""
     i = wp.tid()
     batch = i // n_particles
     k = obj[i - batch * n_particles]
