@@ -810,8 +810,9 @@ class Simulator:
         self._commands: dict[tuple, _Command] = {}
         self._box_args: tuple[tuple | None, dict[str, wp.vec3i]] = (None, {})
         """The last substep's box of grid nodes, and the launch arguments that give it."""
-        # Warp's adjoints (kernel, hooks, packed parameters, packed values) or written ones
-        self._adjoint_commands: dict[tuple, tuple | _Command] = {}
+        # Warp's adjoints (kernel, hooks, packed parameters, packed values), and written ones
+        self._adjoint_commands: dict[tuple, tuple] = {}
+        self._written_commands: dict[tuple, _Command] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
         self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
                                     wp.zeros(self.n_batch, dtype=int, device=d))
@@ -1303,10 +1304,10 @@ class Simulator:
         Its command is kept under ``key`` and an argument is set again only where it changed
         (``_Command``), as ``_cpu_adjoint`` does for Warp's adjoints.
         """
-        kept = self._adjoint_commands.get(key)
-        if not isinstance(kept, _Command) or kept.command.kernel is not kernel:
+        kept = self._written_commands.get(key)
+        if kept is None or kept.command.kernel is not kernel:
             command = wp.launch(kernel, dim, inputs=args, device=self.device, record_tape=False, record_cmd=True)
-            kept = self._adjoint_commands[key] = _Command(command, list(args), dim)
+            kept = self._written_commands[key] = _Command(command, list(args), dim)
         kept.launch(enumerate(args), dim)
 
     def _cpu_adjoint(self, key: tuple, kernel: wp.Kernel, dim: int, args: list, tape: wp.Tape) -> None:
@@ -1319,7 +1320,7 @@ class Simulator:
         adjoints costs about what a substep's small kernels take to run (``_run``).
         """
         kept = self._adjoint_commands.get(key)  # a key's place on a tape may hold another kernel now
-        if not isinstance(kept, tuple) or kept[0] is not kernel:
+        if kept is None or kept[0] is not kernel:
             hooks = kernel.module.load(self.device).get_kernel_hooks(kernel)
             kept = self._adjoint_commands[key] = (kernel, hooks, [None] * (1 + 2 * len(args)),
                                                   [_UNPACKED] * len(args))
@@ -1373,6 +1374,7 @@ class Simulator:
         self._seen = {key for key in self._seen if key[0] not in kinds}
         self._commands.clear()
         self._adjoint_commands.clear()
+        self._written_commands.clear()
 
     def _check(self, state: _State, stats: wp.array) -> None:
         """Launch the state check of one frame into ``stats`` (B * K * 4, see ``_diverged``)."""
