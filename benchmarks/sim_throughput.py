@@ -68,8 +68,7 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
     import warp as wp
 
     sim = build(n_particles, n_objects, device, tape_memory, batch)
-    if batch > 1:
-        return run_batch(sim, frames)
+    forward_only = batch > 1  # the search's case takes no gradients
     cuda = sim.device.startswith("cuda")
     free0 = wp.get_device(sim.device).free_memory if cuda else 0
     lowest = [free0]
@@ -83,46 +82,33 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
     # warm-up: compilation and the CUDA graphs' captures, each on its graph's second run (a
     # rollout's first frame has a graph of its own when the tapes are kept)
     for _ in range(2):
-        traj = sim.rollout(frames, grad=True)
-        sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
+        traj = sim.rollout(frames, grad=not forward_only)
+        if not forward_only:
+            sim.backward(rng.normal(size=traj.shape).astype(np.float32) * 1e-3)
     sim.rollout(2)
     sample()
-    dL = rng.normal(size=traj.shape).astype(np.float32) * 1e-3  # drawn untimed (0.3 s at 1M particles)
     start = time.perf_counter()
     sim.rollout(frames)
     forward = time.perf_counter() - start
     sample()
-    start = time.perf_counter()
-    sim.rollout(frames, grad=True)
-    sim.backward(dL)
-    sample()
-    both = time.perf_counter() - start
-    work = sim.n_particles * n_sub * frames
-    peak = (free0 - lowest[0]) if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    return {
-        "particles": sim.n_particles, "objects": n_objects, "grid_nodes": sim.n_nodes * n_objects,
-        "frames": frames, "substeps_per_frame": n_sub, "device": sim.device,
-        "tapes_kept": bool(sim.kept_tape_frames),
-        "forward_s": forward, "forward_backward_s": both,
-        "forward_particle_substeps_per_s": work / forward,
-        "forward_backward_particle_substeps_per_s": work / both,
-        "backward_over_forward": (both - forward) / forward,
-        "peak_memory_bytes": int(peak), "peak_memory_kind": "device" if cuda else "process RSS",
-    }
-
-
-def run_batch(sim, frames: int) -> dict:
-    """``run_one`` for a batch of parameter sets: the forward only, as the search runs it."""
-    for _ in range(2):  # compilation; the frame's CUDA graph is captured on its second run
-        sim.rollout(frames)
-    n_sub, _ = sim.time_step()
-    start = time.perf_counter()
-    sim.rollout(frames)
-    forward = time.perf_counter() - start
     work = sim.n_batch * sim.n_particles * n_sub * frames
-    return {"particles": sim.n_particles, "objects": sim.n_objects, "batch": sim.n_batch,
-            "grid_nodes": sim.n_nodes * sim.n_objects, "frames": frames, "substeps_per_frame": n_sub,
-            "device": sim.device, "forward_s": forward, "forward_particle_substeps_per_s": work / forward}
+    result = {
+        "particles": sim.n_particles, "objects": n_objects, "batch": sim.n_batch,
+        "grid_nodes": sim.n_nodes * n_objects, "frames": frames, "substeps_per_frame": n_sub,
+        "device": sim.device, "tapes_kept": bool(sim.kept_tape_frames),
+        "forward_s": forward, "forward_particle_substeps_per_s": work / forward,
+    }
+    if not forward_only:
+        dL = rng.normal(size=traj.shape).astype(np.float32) * 1e-3  # drawn untimed (0.3 s at 1M particles)
+        start = time.perf_counter()
+        sim.rollout(frames, grad=True)
+        sim.backward(dL)
+        sample()
+        both = time.perf_counter() - start
+        result.update({"forward_backward_s": both, "forward_backward_particle_substeps_per_s": work / both,
+                       "backward_over_forward": (both - forward) / forward})
+    peak = (free0 - lowest[0]) if cuda else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    return {**result, "peak_memory_bytes": int(peak), "peak_memory_kind": "device" if cuda else "process RSS"}
 
 
 def main() -> int:
