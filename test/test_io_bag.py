@@ -653,7 +653,11 @@ def test_mosiv_info_shows_cameras_objects_declared_parameters_ground_and_effects
     assert f"object 2: {names[1]} (family not declared); declared parameters: none" in out
     assert "ground: height 0.01 m, normal (0.0, 0.0, 1.0), friction 0.4" in out
     assert f"declared effect drag: {{'coefficient': {{'{names[0]}': 1.5}}}}" in out
-    assert main(["info", str(small_bag)]) == 0
+    assert main(["info", str(small_bag)]) == 0  # the analytic sample declares its floor alone
+    assert "ground: height 0 m, normal (0.0, 0.0, 1.0), friction fitted (not declared)" in capsys.readouterr().out
+    only_objects = "objects: [" + ", ".join(f"{{id: {i}, name: {n}}}" for i, n in enumerate(names, 1)) + "]\n"
+    floorless = rewrite(small_bag, tmp_path / "floorless", custom_data={SCENE_KEY: only_objects})
+    assert main(["info", str(floorless)]) == 0
     assert "ground: not declared (no floor in the simulation)" in capsys.readouterr().out
 
 

@@ -22,6 +22,7 @@ from mosiv_ros.synth.ground_truth import (
     read_ground_truth_particles,
 )
 from mosiv_ros.synth.scene_file import DEFAULT_START_NS, read_scene_file
+from mosiv_ros.synth.shapes import make_shapes_recording
 
 CAMERAS = ("cam0", "cam1", "top", "late")
 N_FRAMES = 6  # 0.5 s at 10 fps, both ends
@@ -203,6 +204,21 @@ def test_committed_sample_bag_matches_its_scene_file_and_hides_undeclared_effect
     for effect in hidden:
         assert effect not in str(custom) and effect not in (bag / "metadata.yaml").read_text()
     assert hidden == HIDDEN.get(name, [])
+
+
+def test_committed_analytic_sample_bag_is_what_make_sample_bag_writes_with_its_floor_declared():
+    # The analytic scene draws its balls on a floor at z = 0; a twin without that floor lets them
+    # fall (the bag shipped without it until the twenty-third session, and its fit diverged).
+    shipped = read_recording(Path(__file__).parents[1] / "bags" / "shapes_demo")
+    written = make_shapes_recording()
+    assert shipped.scene == written.scene
+    assert shipped.scene.ground is not None and shipped.scene.ground.plane() == (0.0, (0.0, 0.0, 1.0))
+    assert shipped.scene.ground.friction is None  # closed-form paths: no friction to declare
+    assert sorted(shipped.cameras) == sorted(written.cameras)
+    for name, camera in shipped.cameras.items():
+        for got, want in zip(camera.frames, written.cameras[name].frames, strict=True):
+            assert got.stamp_ns == want.stamp_ns
+            assert np.array_equal(got.mask, want.mask) and np.array_equal(got.rgb, want.rgb)
 
 
 def _raised(scene: dict, dz: float) -> dict:

@@ -1,11 +1,13 @@
 """A tiny analytic recording: coloured spheres on a floor, seen by a ring of cameras.
 
 What it is for: a small sample bag (and in-memory Recording) with exactly known geometry, for
-tests, demos and the bundled ``bags/`` sample, until the physics-based recorder exists. Every
-pixel is ray-traced analytically (ray-sphere and ray-plane intersection, numpy-vectorised).
-What it is not for: physics. The spheres follow closed-form paths (an elastic ball bouncing in
-ballistic flight, a ball rolling on the floor, a ball at rest); no material parameter shapes them,
-and no ground-truth sidecar is written.
+tests, demos and the bundled ``bags/shapes_demo``. Every pixel is ray-traced analytically
+(ray-sphere and ray-plane intersection, numpy-vectorised). What it is not for: physics (the
+physics-based recorder is ``synth.recorder``). The spheres follow closed-form paths (an elastic
+ball bouncing in ballistic flight without losing speed, a ball sliding on the floor at a constant
+velocity, a ball at rest); no material parameter shapes them, so a twin fits them only
+approximately, and no ground-truth sidecar is written. The scene declares the floor it draws
+(height 0, normal +z, friction undeclared), as a recording of a real floor would.
 
 Conventions: world frame z up, floor the square |x|, |y| <= FLOOR_HALF_SIZE at z = 0; cameras on
 a ring around the scene centre, optical frames x right, y down, z forward; pixel centres at
@@ -31,7 +33,7 @@ import numpy as np
 
 from mosiv_ros.io.bag import write_recording
 from mosiv_ros.io.recording import Camera, CameraIntrinsics, Frame, Recording
-from mosiv_ros.io.scene import Scene, SceneObject
+from mosiv_ros.io.scene import DeclaredGround, Scene, SceneObject
 from mosiv_ros.synth.cameras import look_at, pinhole, pixel_rays
 from mosiv_ros.synth.render import BACKGROUND_RGB, Floor, shade
 
@@ -182,7 +184,7 @@ def make_shapes_recording(
     """The sample recording: ``n_cameras`` ring cameras ``cam0..``, synchronised frames at ``fps``.
 
     Frame k has stamp START_NS + k / fps (s) and shows the spheres of ``shapes_spheres(seed)`` at
-    t = k / fps. The scene declares the three spheres; there is no gripper.
+    t = k / fps. The scene declares the three spheres and the floor; there is no gripper.
     """
     if n_frames < 1 or n_cameras < 1 or fps <= 0:
         raise ValueError(
@@ -198,7 +200,8 @@ def make_shapes_recording(
             Frame(START_NS + dt, *render(intrinsics, T, spheres, dt * 1e-9)) for dt in offsets_ns
         ]
         cameras[f"cam{index}"] = Camera(f"cam{index}", intrinsics, T, frames)
-    scene = Scene(objects=[SceneObject(s.id, s.name, s.family) for s in spheres])
+    scene = Scene(objects=[SceneObject(s.id, s.name, s.family) for s in spheres],
+                  ground=DeclaredGround(height=0.0, normal=(0.0, 0.0, 1.0)))
     return Recording(cameras=cameras, scene=scene)
 
 
