@@ -17,7 +17,9 @@ Two switches fit from a better model than the recording gives, to tell what the 
 geometry and the assumed densities cost the fit (as ``objective_scan.py`` does for its loss):
 ``--true-particles`` (all objects, or ``--true-particles cube``) starts those objects from the
 recorder's own particles at the lifted frame, and ``--density truth`` (or ``--density
-sand=1600``) declares objects' densities at their true (or given) values.
+sand=1600``) declares objects' densities at their true (or given) values. ``--true-effects``
+declares the effects the recording leaves undeclared (thrown_ball's air drag, cube_on_slab's
+wind) at their true values: what the fit costs, and finds, when the model lacks nothing.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from objective_scan import asked_densities, declare_densities, with_true_particles_of
+from objective_scan import asked_densities, declare_densities, declare_true_effects, with_true_particles_of
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.config import updated
@@ -41,23 +43,28 @@ from mosiv_ros.prepare import RunConfig, prepare
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 
-def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: list[str]):
-    """``prepare(bag)``, with the recorder's particles and declared densities where asked."""
+def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: list[str],
+                  true_effects: bool = False):
+    """``prepare(bag)``, with the recorder's particles, declared densities and effects where asked."""
     prepared = prepare(bag, config)
-    if not true_particles and not density:
+    if not true_particles and not density and not true_effects:
         return prepared
-    truth = {o["name"]: o for o in read_ground_truth(bag)["objects"]}
+    truth = read_ground_truth(bag)
+    objects = {o["name"]: o for o in truth["objects"]}
     if true_particles:
-        prepared.lifted = with_true_particles_of(prepared.lifted, bag, true_particles, truth)
-    declare_densities(asked_densities(density, truth), prepared.recording.scene.objects)
+        prepared.lifted = with_true_particles_of(prepared.lifted, bag, true_particles, objects)
+    declare_densities(asked_densities(density, objects), prepared.recording.scene.objects)
+    if true_effects:
+        declare_true_effects(prepared.recording.scene, truth)
     return prepared
 
 
 def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
-        density: list[str] | None = None) -> dict:
+        density: list[str] | None = None, true_effects: bool = False) -> dict:
     start = time.perf_counter()
     directory = OutputDir(out, f"benchmarks/identify_samples.py {bag}")
-    result = run_prepared(prepared_with(bag, config, true_particles, density or []), directory, config)
+    prepared = prepared_with(bag, config, true_particles, density or [], true_effects)
+    result = run_prepared(prepared, directory, config)
     report = result.report
     fit = report["fit"]
     history = fit.get("history", [])
@@ -81,25 +88,27 @@ def main() -> int:
     parser.add_argument("--true-particles", nargs="?", const="all", default="",
                         help="'all' or comma-separated object names")
     parser.add_argument("--density", action="append", default=[], help="'truth' or object=kg/m^3")
+    parser.add_argument("--true-effects", action="store_true",
+                        help="declare the recording's undeclared effects at their true values")
     parser.add_argument("--out", type=Path, default=Path("out/identify_samples.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
     results = []
     for bag in args.bags:
         results.append({"loss": "per_object", **one(bag, config, args.out.parent / bag.name,
-                                                    args.true_particles, args.density)})
+                                                    args.true_particles, args.density, args.true_effects)})
         print(json.dumps(plain(results[-1], null_nonfinite=True))[:2000], flush=True)
         if args.ablation:
             union = dataclasses.replace(config, identify=updated(config.identify, {"loss.per_object": False}))
             results.append({"loss": "scene_level",
                             **one(bag, union, args.out.parent / f"{bag.name}_scene_level",
-                                  args.true_particles, args.density)})
+                                  args.true_particles, args.density, args.true_effects)})
             print(json.dumps(plain(results[-1], null_nonfinite=True))[:2000], flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(plain({
         "benchmark": "identify_samples", "device": args.device, "host": platform.node(),
         "python": sys.version.split()[0], "params_file": str(args.params_file),
-        "true_particles": args.true_particles, "density": args.density,
+        "true_particles": args.true_particles, "density": args.density, "true_effects": args.true_effects,
         "results": results}, null_nonfinite=True), indent=1))
     print(f"wrote {args.out}")
     return 0
