@@ -435,25 +435,18 @@ def cmd_graph(args: argparse.Namespace) -> int:
 
 @contextlib.contextmanager
 def _kernels_built_aside(device: str) -> Iterator[None]:
-    """The simulator's kernels for ``device`` built and loaded while the block runs (``cmd_graph``).
+    """The kernels for ``device`` built and loaded while the block runs (``cmd_graph``).
 
     A child process and a thread here build them: on an empty kernel cache each builds the
     modules the other is not building (``sim.runtime``), so on two cores the build takes about
     half as long. The child goes with the block.
     """
-    from mosiv_ros.sim.simulator import load_kernels
-
-    def build() -> None:
-        try:
-            load_kernels(device)
-        except Exception as error:  # noqa: BLE001 - identify_node meets the same error and reports it
-            LOG.warning("building the simulator's kernels ahead of the graph failed (identify_node "
-                        "will try again): %s", error)
+    from mosiv_ros.identify.run import build_kernels_aside
 
     child = subprocess.Popen([sys.executable, "-c", "from mosiv_ros.sim import runtime, simulator; "
                               f"runtime.start(); simulator.load_kernels({device!r})"],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    threading.Thread(target=build, name="kernels", daemon=True).start()
+    build_kernels_aside(device)
     try:
         yield
     finally:

@@ -23,7 +23,7 @@ from pathlib import Path
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise, track_errors, view_coverage
 from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
 from mosiv_ros.identify.problem import views_of
-from mosiv_ros.identify.run import identify_objects, phase_progress
+from mosiv_ros.identify.run import build_kernels_aside, identify_objects, phase_progress
 from mosiv_ros.io.files import OutputDir
 from mosiv_ros.predict.twin import Twin
 from mosiv_ros.prepare import Prepared, RunConfig, prepare
@@ -52,6 +52,7 @@ def run(bag: str | Path, out: str | Path, config: RunConfig | None = None,
     """Run every stage on a recording (the module docstring); ``progress``: ``mosiv_ros.progress``."""
     config = config or RunConfig()
     directory = OutputDir(out, f"mosiv run {bag}")  # before any work: a bad place fails now
+    build_kernels_aside(config.identify.device)  # while the recording is reconstructed
     return run_prepared(prepare(bag, config, progress), directory, config, progress)
 
 

@@ -15,6 +15,7 @@ from mosiv_ros.config import updated
 from mosiv_ros.identify.checkpoint import CHECKPOINT_FILE, SEARCH_FILE, Checkpoint, signature
 from mosiv_ros.identify.curriculum import Adam, FitState, window_starts
 from mosiv_ros.identify.fit import Identifier
+from mosiv_ros.identify.run import build_kernels_aside
 from mosiv_ros.identify.search import SEARCH_RANGES
 from mosiv_ros.sim import SimState
 
@@ -278,3 +279,26 @@ def test_the_initial_velocity_passes_over_frames_the_stream_lost_and_keeps_a_res
     np.testing.assert_array_equal(velocity[1], 0.0)
     # past the horizon nothing is guessed: an object seen once in it keeps zero
     assert not Observations(dt, points[:1] + [[np.zeros((0, 3))] * 2] * 9, [1, 2]).initial_velocities().any()
+
+
+def test_kernels_built_aside_are_the_ones_a_fit_loads_and_a_failed_build_is_only_logged(caplog):
+    # identify_node and `mosiv run` build them while the recording arrives: afterwards the fit's
+    # own loads (the simulator's modules and the losses') find every module loaded already
+    import subprocess
+    import sys
+
+    code = ("import logging, sys; logging.basicConfig(level=logging.INFO, stream=sys.stdout); "
+            "from mosiv_ros.identify.run import build_kernels_aside; "
+            f"build_kernels_aside({DEVICE!r}).join(); print('built aside'); "
+            "from mosiv_ros.identify import losses; from mosiv_ros.sim import runtime; "
+            "from mosiv_ros.sim.simulator import load_kernels; "
+            f"load_kernels({DEVICE!r}); runtime.load_modules({DEVICE!r}, [losses])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                         check=True).stdout
+    before, after = out.split("built aside")
+    assert f"kernels ready on {DEVICE}" in before
+    assert "loading the simulator's kernels" not in after  # nothing left for the fit to build
+    with caplog.at_level(logging.WARNING):
+        build_kernels_aside("cuda:99").join(timeout=60)
+    assert "building the kernels ahead of the fit failed (the fit will try again)" in caplog.text
+    assert "cuda:99" in caplog.text

@@ -18,12 +18,14 @@ What it is for: the stage as a unit. What it is not for: its parts (``problem``,
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from mosiv_ros.config import IdentifyConfig
+from mosiv_ros.identify import losses
 from mosiv_ros.identify.estimates import ERROR, Estimates, ObjectEstimate, coordinate_std, estimates_of
 from mosiv_ros.identify.family import (
     FamilyChoice,
@@ -39,6 +41,8 @@ from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
+from mosiv_ros.sim.runtime import load_modules, resolve_device
+from mosiv_ros.sim.simulator import load_kernels
 
 _LOG = logging.getLogger(__name__)
 
@@ -52,6 +56,29 @@ class Identification:
     result: FitResult | None = None
     window: int = 0
     families: list[FamilyChoice] = field(default_factory=list)
+
+
+def build_kernels_aside(device: str) -> threading.Thread:
+    """Build and load the kernels an identification on ``device`` launches, in a daemon thread.
+
+    On an empty kernel cache they take seconds to build (about 10 s on two CPU cores, 15-20 s on
+    an H100, the first run after an install or an upgrade). Started as the recording begins to
+    arrive (identify_node) or before the reconstruction (``mosiv run``), the build is done, or
+    further on, when the fit needs it; the fit then waits for the build under way rather than
+    starting another (``sim.runtime.load_modules``). A failure is logged: the fit meets the same
+    error and reports it.
+    """
+    def build() -> None:
+        try:
+            where = resolve_device(device)
+            load_kernels(where)
+            load_modules(where, [losses])
+        except Exception as error:  # noqa: BLE001 - the fit meets the same error and reports it
+            _LOG.warning("building the kernels ahead of the fit failed (the fit will try again): %s", error)
+
+    thread = threading.Thread(target=build, name="kernels", daemon=True)
+    thread.start()
+    return thread
 
 
 def identify_objects(frames: Sequence[ObservedFrame], lifted: LiftedParticles, scene: Scene,

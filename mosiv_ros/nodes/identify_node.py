@@ -45,7 +45,7 @@ from sensor_msgs.msg import PointCloud2
 from mosiv_ros.config import IdentifyConfig
 from mosiv_ros.identify.estimates import ERROR
 from mosiv_ros.identify.family import candidate_families
-from mosiv_ros.identify.run import UNITS, failed_estimates, identify_objects
+from mosiv_ros.identify.run import UNITS, build_kernels_aside, failed_estimates, identify_objects
 from mosiv_ros.io.bag import load_scene
 from mosiv_ros.io.files import OutputDir, check_output_file
 from mosiv_ros.io.messages import pointcloud_from_msg
@@ -83,6 +83,7 @@ class IdentifyNode(Node):
         self.config: IdentifyConfig = declare_config(self, IdentifyConfig)
         candidate_families(self.config.families)  # a bad list stops the node now, not after the stream
         resolve_device(self.config.device)  # a device that is not there stops the node now
+        build_kernels_aside(self.config.device)  # while the recording arrives
         self.scene: Scene = load_scene(self.config.scene) if self.config.scene else Scene()
         # outputs that cannot be written stop the node now, not after the fit
         if self.config.output_yaml:
