@@ -44,8 +44,6 @@ from mosiv_ros.config import (
 from mosiv_ros.graph import MAX_DOMAIN_ID, GraphError
 from mosiv_ros.io.errors import MosivIOError, not_utf8
 
-LOG = logging.getLogger("mosiv")
-
 LOOP_OPTIONS = {"top_k": "leading candidates refitted per round (default: LoopConfig's)",
                 "max_rounds": "most effects added (default: LoopConfig's)"}
 """The ``LoopConfig`` settings ``mosiv close-loop`` takes as options (``--top-k``), and their help.
