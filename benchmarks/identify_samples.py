@@ -37,6 +37,7 @@ from objective_scan import asked_densities, declare_densities, declare_true_effe
 
 from mosiv_ros.cli import run_config
 from mosiv_ros.config import updated
+from mosiv_ros.identify.run import build_kernels_aside
 from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.pipeline import run_prepared
 from mosiv_ros.prepare import RunConfig, prepare
@@ -63,6 +64,7 @@ def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
         density: list[str] | None = None, true_effects: bool = False) -> dict:
     start = time.perf_counter()
     directory = OutputDir(out, f"benchmarks/identify_samples.py {bag}")
+    build_kernels_aside(config.identify.device)  # as mosiv run does
     prepared = prepared_with(bag, config, true_particles, density or [], true_effects)
     result = run_prepared(prepared, directory, config)
     report = result.report

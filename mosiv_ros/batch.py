@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from mosiv_ros.config import BatchConfig
+from mosiv_ros.identify.run import build_kernels_aside
 from mosiv_ros.io.bag import find_bags
 from mosiv_ros.io.files import OutputDir, plain, write_text
 from mosiv_ros.loop.closure import LoopConfig
@@ -150,6 +151,7 @@ def process(item: Item, folder: Path, config: RunConfig, loop: LoopConfig | None
     start = time.perf_counter()
     try:
         run_out = OutputDir(folder / RUN_DIR, f"mosiv batch: mosiv run {item.bag}")
+        build_kernels_aside(device)  # while the recording is reconstructed
         prepared = prepare(item.bag, config)
         report = run_prepared(prepared, run_out, _checkpointed(config, checkpoints / RUN_DIR)).report
         seconds = {"run": time.perf_counter() - start}

@@ -40,6 +40,7 @@ import numpy as np
 from mosiv_ros.evaluate.twin import parameter_errors, score_frames, summarise
 from mosiv_ros.identify.estimates import ESTIMATES_FILE
 from mosiv_ros.identify.problem import views_of
+from mosiv_ros.identify.run import build_kernels_aside
 from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.io.scene import scene_to_yaml
 from mosiv_ros.loop.closure import LoopClosure, LoopConfig, LoopResult, Model
@@ -65,6 +66,7 @@ def close_loop(bag: str | Path, out: str | Path, config: RunConfig | None = None
     """
     directory = OutputDir(out, f"mosiv close-loop {bag}")  # before any work: a bad place fails now
     config = config or RunConfig()
+    build_kernels_aside(config.identify.device)  # while the recording is reconstructed
     return close_loop_prepared(prepare(bag, config, progress), directory, config, loop, progress)
 
 
