@@ -9,9 +9,9 @@ every stage, the fit's iterations (the search's wall time and the mean wall time
 split into simulation forward, loss and backward) and how many diverged, every estimated
 parameter against ``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu,
 relative error otherwise) and the CD, EMD, IoU, PSNR, SSIM and the surface track error on the
-fitted and the held-out frames. A params file with ``loss: {track_weight: 0.0}`` fits without the track loss (tracks off
-against on, side by side). ``--ablation`` adds a
-second fit with the scene-level (union) losses instead of the per-object ones.
+fitted and the held-out frames. A params file with ``loss: {track_weight: 0.0}`` fits without
+the track loss (tracks off against on, side by side). ``--ablation`` adds a second fit with the
+scene-level (union) losses instead of the per-object ones.
 
 Two switches fit from a better model than the recording gives, to tell what the estimated
 geometry and the assumed densities cost the fit (as ``objective_scan.py`` does for its loss):
