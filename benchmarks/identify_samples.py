@@ -5,11 +5,12 @@
 
 Runs ``mosiv_ros.pipeline.run`` (the same as ``mosiv run``: reconstruction, lifting, fit on the
 first 70 % of the frames, uncertainty, twin, scores) on each bag and writes, per bag, the time of
-every stage, the fit's iterations (the search's wall time and the mean wall time of an iteration,
-split into simulation forward, loss and backward) and how many diverged, every estimated
-parameter against ``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu,
-relative error otherwise) and the CD, EMD, IoU, PSNR, SSIM and the surface track error on the
-fitted and the held-out frames. A params file with ``loss: {track_weight: 0.0}`` fits without
+every stage, the fit's iterations (the search's wall time, the race of its closest ends through
+the first curriculum stage, the mean wall time of an iteration, split into simulation forward,
+loss and backward) and how many diverged, every estimated parameter against
+``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu, relative error otherwise)
+and the CD, EMD, IoU, PSNR, SSIM and the surface track error on the fitted and the held-out
+frames. A params file with ``loss: {track_weight: 0.0}`` fits without
 the track loss (tracks off against on, side by side). ``--ablation`` adds a second fit with the
 scene-level (union) losses instead of the per-object ones.
 
@@ -74,7 +75,7 @@ def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
             for key in ("seconds", "forward_s", "loss_s", "backward_s")}
     return {"bag": str(bag), "wall_s": time.perf_counter() - start, "timing": report["timing"],
             "fit_iterations": fit.get("iterations"), "fit_failures": fit.get("failures"),
-            "search_s": fit.get("search_s"), **mean,
+            "search_s": fit.get("search_s"), "race": fit.get("race"), **mean,
             "particles": report["particles"],
             "frames": report["frames"], "fitted_frames": report["fitted_frames"],
             "estimates": report["estimates"]["objects"], "scene": report["estimates"]["scene"],

@@ -169,6 +169,10 @@ class SearchConfig:
     starts: int = _param(
         3, "Best points of the first search round that each go through the further rounds.", 1, 100)
     frames: int = _param(0, "Frames the search simulates; 0 = the whole window.", 0, 100000)
+    race: float = _param(
+        0.05, "Starts whose search ends score within this fraction of the best end's loss each run the "
+        "first curriculum stage, and the one with the lowest loss over that stage's last pass over its "
+        "windows goes on; 0 = the best end only.", 0.0, 10.0)
 
 
 @dataclass

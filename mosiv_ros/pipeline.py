@@ -76,7 +76,7 @@ def run_prepared(prepared: Prepared, out: OutputDir, config: RunConfig,
         raise SimulationError(f"identification failed: {identification.estimates.scene_message}")
     result = identification.result
     fit = {"loss": result.loss, "iterations": len(result.history), "failures": result.failures,
-           "search_s": result.search_s,
+           "search_s": result.search_s, "race": result.race,
            "history": [{k: v for k, v in h.items() if k != "values"} for h in result.history],
            "families": [asdict(choice) for choice in identification.families]}
     return evaluate(prepared, identification.estimates, identification.window, out, config, fit)

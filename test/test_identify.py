@@ -595,7 +595,7 @@ def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(
             "search.samples": 6, "search.rounds": 1, "search.starts": starts}))
         caplog.clear()
         with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.search"):
-            u = identifier.search.run(velocity)
+            u = identifier.search.run(velocity)[0][0]
         logged = re.findall(r"search start (\d+) of (\d+): loss (\S+): (.*)", caplog.text)
         loss = identifier.search.batch_losses(u[None], velocity, together=False)[0]
         ends[starts] = (loss, logged)
@@ -606,6 +606,38 @@ def test_several_search_starts_each_narrow_on_their_own_and_the_lowest_end_wins(
     assert three_logged[0][2:] == one_logged[0][2:]
     assert three_loss == pytest.approx(min(float(loss) for _, _, loss, _ in three_logged), rel=5e-3)
     assert three_loss <= one_loss * (1 + max(SAME, 1e-9))
+
+
+@pytest.mark.slow
+def test_search_ends_too_close_to_rank_each_run_the_first_stage_and_the_better_fit_goes_on():
+    # three ends as the search might score them: a stiff one best, the truth 1 % behind, a third
+    # 20 % behind; the first two run the first stage, where the truth fits better and goes on
+    records: list[dict] = []
+    problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6,
+                                       **{"curriculum.horizons": [3, 0], "curriculum.iterations": 4})
+    identifier = Identifier(problem, settings, progress=records.append)
+    velocity = np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+
+    def at(values: dict) -> np.ndarray:
+        return np.array([float(e.coordinate.to_u(values[e.name])) for e in identifier.entries])
+
+    stiff, truth, third = at({"E": 2e5, "nu": 0.3}), at({"E": 2e4, "nu": 0.3}), at({"E": 5e3, "nu": 0.1})
+    adam = Adam(np.full(2 + velocity.size, 0.05))
+    state, race = identifier._raced([(stiff, 1.0), (truth, 1.01), (third, 1.2)], velocity, adam)
+    assert [(r["search_loss"], r["went_on"]) for r in race] == [(1.0, False), (1.01, True)]
+    assert race[1]["stage_loss"] < race[0]["stage_loss"] and all(r["seconds"] > 0 for r in race)
+    # the winner is left at the first stage's end, its own four iterations in its history
+    assert (state.stage, state.iteration, len(state.history)) == (0, 4, 4)
+    assert state.start[0] == pytest.approx(truth) and state.history[0]["values"]["cube.E"] == pytest.approx(
+        2e4, rel=0.2)
+    # the progress records count both ends' iterations, and the curriculum's after them
+    assert [(r["done"], r["total"]) for r in records] == [(i, 4 + 2 * 4) for i in range(1, 9)]
+    assert identifier.curriculum.raced == 4
+    # with search.race 0 (or one end within it) the search's best end goes on alone, untouched
+    alone = Identifier(problem, updated(settings, {"search.race": 0.0}))
+    state, race = alone._raced([(stiff, 1.0), (truth, 1.01)], velocity, adam)
+    assert race == [] and state.u == pytest.approx(stiff) and state.history == []
 
 
 @pytest.mark.slow
@@ -707,6 +739,32 @@ def test_a_search_stopped_after_its_first_round_resumes_there_and_ends_where_an_
     assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
     assert resumed.u == pytest.approx(reference.u, rel=max(SAME, 1e-5))
     assert not (tmp_path / "ckpt" / SEARCH_FILE).exists()  # the fit's own checkpoint took over
+
+
+@pytest.mark.slow
+def test_a_fit_stopped_in_its_race_races_again_from_the_searchs_checkpoint(tmp_path, caplog):
+    args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
+    options = {"search.samples": 6, "search.starts": 2, "search.rounds": 1, "search.race": 10.0,
+               "curriculum.horizons": [3, 0], "curriculum.iterations": 2}
+    problem, settings = _jelly_problem(*args, frames=6, **options, checkpoint_dir=str(tmp_path / "ckpt"))
+    reference = Identifier(*_jelly_problem(*args, frames=6, **options)).run()
+    assert len(reference.race) == 2  # both ends within 1000 % of the best: both ran the first stage
+
+    def stop_in_the_second_ends_stage(record):
+        if record["phase"] == "fit" and record["done"] == 3:
+            raise _Stop
+
+    with pytest.raises(_Stop):
+        Identifier(problem, settings, progress=stop_in_the_second_ends_stage).run()
+    assert (tmp_path / "ckpt" / SEARCH_FILE).is_file()
+    assert not (tmp_path / "ckpt" / "identify_checkpoint.npz").exists()  # nothing of the race is kept
+    records: list[dict] = []
+    with caplog.at_level(logging.INFO, logger="mosiv_ros.identify.search"):
+        resumed = Identifier(problem, settings, progress=records.append).run()
+    assert "2 rounds done" in caplog.text  # the search is not scored again
+    assert [r["done"] for r in records if r["phase"] == "fit"] == list(range(1, 2 * 2 + 2 + 1))
+    assert [r["went_on"] for r in resumed.race] == [r["went_on"] for r in reference.race]
+    assert resumed.values["E"] == pytest.approx(reference.values["E"], rel=max(SAME, 1e-5))
 
 
 @pytest.mark.slow

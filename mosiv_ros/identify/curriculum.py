@@ -14,7 +14,9 @@ or where an interrupted fit stopped) through the curriculum stages ``settings.cu
 - Adam's steps are projected back into each coordinate's range (``Identifier.project``);
 - a diverging rollout (a window's or the anchor's) does not end the fit: the step is undone
   and the learning rate halved (``retreat``);
-- every whole-window iteration's loss is compared: ``FitState.best`` keeps the lowest.
+- every whole-window iteration's loss is compared: ``FitState.best`` keeps the lowest;
+- ``race(states)`` runs the first stage from each of several points (the search's ends whose
+  losses lie too close to rank them) and names the one that fits best there, to go on.
 
 ``saved(state)`` is called after every iteration (the checkpoint). The identifier
 (``identify.fit.Identifier``) supplies the problem, the settings and the loss of a window.
@@ -110,20 +112,27 @@ class Curriculum:
 
     def __init__(self, identifier: Identifier) -> None:
         self.identifier = identifier
+        self.raced = 0
+        """Iterations the progress records count before this state's own: the race's (``race``)."""
+        self.racing = 0
+        """Iterations the race adds to the curriculum's, which the progress records' total counts."""
 
     def stages(self) -> list[int]:
         """Each stage's window length in frames (the whole sequence for 0 or longer)."""
         n = self.identifier.problem.observations.n_frames - 1
         return [h if 0 < h < n else n for h in self.identifier.settings.curriculum.horizons]
 
-    def run(self, state: FitState, saved: Callable[[FitState], None]) -> FitState:
-        """Iterate from ``state`` to the curriculum's end; ``saved(state)`` after every iteration."""
+    def run(self, state: FitState, saved: Callable[[FitState], None], until: int | None = None) -> FitState:
+        """Iterate from ``state`` to the curriculum's end, or to stage ``until``'s start.
+
+        ``saved(state)`` after every iteration.
+        """
         fit, s = self.identifier, self.identifier.settings
         n = fit.problem.observations.n_frames - 1
         moving = np.linalg.norm(state.velocity[:, :3], axis=1) > 0
         stages = self.stages()
         stage0, iteration0 = state.stage, state.iteration
-        for stage in range(stage0, len(stages)):
+        for stage in range(stage0, len(stages) if until is None else min(until, len(stages))):
             length = stages[stage]
             starts = window_starts(n, length, s.curriculum.windows)
             anchor: dict[int, SimState] = {}
@@ -158,11 +167,33 @@ class Curriculum:
                           "loss": loss, "values": fit.values_of(state.u),
                           "seconds": time.perf_counter() - tick, **fit.timing}
                 state.history.append(record)
-                fit.report({"phase": "fit", "done": stage * s.curriculum.iterations + iteration + 1,
-                            "total": len(stages) * s.curriculum.iterations, **record})
+                fit.report({"phase": "fit", "done": self.raced + stage * s.curriculum.iterations + iteration + 1,
+                            "total": self.racing + len(stages) * s.curriculum.iterations, **record})
                 state.stage, state.iteration = stage, iteration + 1
                 saved(state)
         return state
+
+    def race(self, states: list[FitState]) -> tuple[int, list[float]]:
+        """The first stage from each of ``states`` (the search's closest ends); which goes on, and the scores.
+
+        A state's score is its mean loss over the stage's last pass over its windows: the same
+        windows for every state, an iteration's loss that of the point the step before reached;
+        infinite if an iteration of that pass diverged. The lowest goes on; the states are left
+        at the stage's end. The progress records count every state's iterations.
+        """
+        fit, s = self.identifier, self.identifier.settings
+        iterations = s.curriculum.iterations
+        n = fit.problem.observations.n_frames - 1
+        last_pass = min(iterations, len(window_starts(n, self.stages()[0], s.curriculum.windows)))
+        self.racing = (len(states) - 1) * iterations
+        scores = []
+        for r, state in enumerate(states):
+            self.raced = r * iterations
+            self.run(state, lambda _: None, until=1)
+            losses = [h["loss"] for h in state.history if h["iteration"] >= iterations - last_pass]
+            scores.append(float(np.mean(losses)) if len(losses) == last_pass else math.inf)
+        self.raced = self.racing
+        return int(np.argmin(scores)), scores
 
     def retreat(self, state: FitState) -> tuple[np.ndarray, np.ndarray, str]:
         """Where to go after a diverged iteration: (u, velocity, what was done).

@@ -6,7 +6,9 @@ velocity) to its observations with Adam on the simulator's gradients. The identi
 problem and its objective; three parts do the work, each in its own module:
 
 - ``identify.search.GlobalSearch``: before Adam, a gradient-free search in batched rollouts
-  finds the basin (Latin-hypercube rounds in ever narrower boxes, from several starts);
+  finds the basin (Latin-hypercube rounds in ever narrower boxes, from several starts); ends
+  whose losses lie within ``search.race`` of the best each run the curriculum's first stage,
+  and the one that fits best there goes on (``Curriculum.race``);
 - ``identify.curriculum.Curriculum``: Adam over a horizon curriculum of windows, each window
   after the first resynchronised onto the observed centroids, a diverging step undone;
 - ``identify.checkpoint.Checkpoint``: with a checkpoint directory the state is written after
@@ -184,6 +186,9 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     failures: int = 0
     search_s: float = 0.0
+    race: list[dict] = field(default_factory=list)
+    """The search's ends that ran the first curriculum stage (``search.race``), each with its
+    search loss, its score there, the stage's seconds and whether it went on; empty: none ran."""
 
 
 class Identifier:
@@ -446,7 +451,7 @@ class Identifier:
         u = self.pack()
         adam = Adam(np.r_[np.full(len(u), s.curriculum.learning_rate),
                           np.full(velocity.size, s.curriculum.velocity_learning_rate)])
-        search_s = 0.0
+        search_s, race = 0.0, []
         checkpoint = Checkpoint(s.checkpoint_dir, signature(
             self.problem, [e.label for e in self.entries], s.result_settings()))
         state = checkpoint.load()
@@ -459,16 +464,47 @@ class Identifier:
             state = FitState(u, velocity, adam, (u.copy(), velocity.copy()))
         else:
             tick = time.perf_counter()
-            u = self.search.run(velocity, checkpoint)
+            ends = self.search.run(velocity, checkpoint)
             search_s = time.perf_counter() - tick
-            state = FitState(u, velocity, adam, (u.copy(), velocity.copy()))
-            checkpoint.save(state)  # stopped before its first iteration ends, it resumes here
+            state, race = self._raced(ends, velocity, adam)
+            # stopped before its first iteration after the search and the race ends, it resumes
+            # here; stopped in the race, it races again from the search's checkpoint
+            checkpoint.save(state)
         state = self.curriculum.run(state, checkpoint.save)
         u, velocity, loss, per = self._final(state)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
         return FitResult(values, self.entries, u, velocity, loss, per, state.history, state.failures,
-                         search_s)
+                         search_s, race)
+
+    def _raced(self, ends: list[tuple[np.ndarray, float]], velocity: np.ndarray,
+               adam: Adam) -> tuple[FitState, list[dict]]:
+        """The state Adam goes on from after the search's ``ends`` (best first), and the race's record.
+
+        The best end, unless others score within ``search.race`` of its loss: then each of those
+        runs the curriculum's first stage and the one that fits best there goes on
+        (``Curriculum.race``). Ends that close rank by the search's loss hardly better than by
+        chance: on cube_on_slab three ends 1.9 % apart finished Adam in the opposite order
+        (benchmarks/RESULTS.md).
+        """
+        s = self.settings
+        racers = ends[:1]
+        for u, loss in ends[1:]:
+            close = s.search.race > 0 and loss <= ends[0][1] * (1 + s.search.race)
+            if close and not any(np.array_equal(u, other) for other, _ in racers):
+                racers.append((u, loss))
+        states = [FitState(u.copy(), velocity.copy(), copy.deepcopy(adam), (u.copy(), velocity.copy()))
+                  for u, _ in racers]
+        if len(states) == 1 or not self.curriculum.stages() or s.curriculum.iterations == 0:
+            return states[0], []
+        won, scores = self.curriculum.race(states)
+        race = [{"search_loss": loss, "stage_loss": score,
+                 "seconds": sum(h["seconds"] for h in state.history), "went_on": k == won}
+                for k, ((_, loss), state, score) in enumerate(zip(racers, states, scores, strict=True))]
+        _LOG.info("the search's %d closest ends each ran the first stage (%d-frame windows): losses %s; "
+                  "end %d went on", len(states), self.curriculum.stages()[0],
+                  ", ".join(f"{r['search_loss']:.4g} -> {r['stage_loss']:.4g}" for r in race), won + 1)
+        return states[won], race
 
     def _final(self, state: FitState) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
         """The fit's result: (u, velocity, whole-window loss, per-object losses), applied.

@@ -1,8 +1,8 @@
 """The gradient-free search before Adam, and the batched losses it scores with (MOSIV stage 3).
 
-``GlobalSearch(identifier).run(velocity, checkpoint)`` returns the coordinates (u) of the best point found,
-and leaves the identifier's simulator set to them. All its candidates are simulated in batched
-rollouts of the first ``search.frames`` frames (0 = all):
+``GlobalSearch(identifier).run(velocity, checkpoint)`` returns the points found (the starts' ends,
+best first, with their losses), and leaves the identifier's simulator set to the best. All its
+candidates are simulated in batched rollouts of the first ``search.frames`` frames (0 = all):
 
 - ``search.samples`` points of a Latin hypercube over a box (``box``), which for a material
   parameter is its prior range ``SEARCH_RANGES`` (a yield stress far above the true one leaves
@@ -18,7 +18,9 @@ rollouts of the first ``search.frames`` frames (0 = all):
   ``search.rounds`` more such rounds (the starts' rounds side by side, their contenders scored
   together), each in a box 3x narrower than the last around its best so far (samples that
   move every coordinate at once follow the valleys of coupled parameters, such as E and nu,
-  which one-coordinate-at-a-time passes stall in), and the lowest end wins.
+  which one-coordinate-at-a-time passes stall in), and the ends are returned lowest first (the
+  fit runs those within ``search.race`` of the lowest through its first stage to choose,
+  ``Identifier``).
   Several starts keep other basins alive: coupled parameters can explain the same motion twice
   (on elastic_on_plastic one start narrowed onto a clay yield stress of 456 Pa with a ground
   friction of 1.9, at a higher loss than the true 800 Pa and 0.5), and the first round's best
@@ -385,8 +387,11 @@ class GlobalSearch:
             found.append([(contenders[i].copy(), float(values[i])) for i in order[:keep]])
         return found
 
-    def run(self, velocity: np.ndarray, checkpoint: Checkpoint | None = None) -> np.ndarray:
-        """Latin-hypercube rounds in ever narrower boxes (module docstring); return u, applied.
+    def run(self, velocity: np.ndarray, checkpoint: Checkpoint | None = None) -> list[tuple[np.ndarray, float]]:
+        """Latin-hypercube rounds in ever narrower boxes (module docstring); the ends, the best applied.
+
+        Returns each start's end as (u, loss), the lowest loss first; without samples, the
+        identifier's own point with a NaN loss.
 
         The starts' later rounds run side by side (``best_of``): round r of every start, then
         round r + 1. Their samples are drawn, after the first round's, as if the starts ran one
@@ -442,6 +447,7 @@ class GlobalSearch:
             fit.report({"phase": "search", "done": done * s.search.samples,
                         "total": rounds * s.search.samples})
 
+        ends: list[tuple[np.ndarray, float]] = []  # each start's (u, loss)
         if s.search.samples > 0:
             rounds = 1 + max(1, s.search.starts) * s.search.rounds  # fewer if starts diverge
             restored = 1 if finished else 0
@@ -473,7 +479,6 @@ class GlobalSearch:
                     searched(1 + (number - 1) * n + k + 1)
             for k, (start, loss) in enumerate(ends):
                 _LOG.info("search start %d of %d: loss %.3g: %s", k + 1, n, loss, fit.values_of(start))
-            if ends:
-                u = min(ends, key=lambda end: end[1])[0]
-        fit.apply(u, velocity)
-        return u
+        ends = sorted(ends, key=lambda end: end[1]) if ends else [(u, math.nan)]
+        fit.apply(ends[0][0], velocity)
+        return ends
