@@ -483,8 +483,8 @@ class Identifier:
 
         The best end, unless others score within ``search.race`` of its loss: then each of those
         runs the curriculum's first stage and the one that fits best there goes on
-        (``Curriculum.race``). Ends that close rank by the search's loss hardly better than by
-        chance: on cube_on_slab three ends 1.9 % apart finished Adam in the opposite order
+        (``Curriculum.race``). The search's losses do not rank ends that close reliably: on
+        cube_on_slab three ends 1.9 % apart finished Adam in the opposite order
         (benchmarks/RESULTS.md).
         """
         s = self.settings

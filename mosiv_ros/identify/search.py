@@ -418,8 +418,11 @@ class GlobalSearch:
             _LOG.info("resuming the search from %s: %d rounds done", checkpoint.directory, len(finished))
         rounds_done: list[dict] = []
 
-        def kept(values: list) -> list[tuple[np.ndarray, float]]:
+        def kept(values: list) -> list[tuple[np.ndarray, float]]:  # from the checkpoint's JSON
             return [(np.array(u, dtype=np.float64), float(value)) for u, value in values]
+
+        def listed(points: list[tuple[np.ndarray, float]]) -> list:  # to it
+            return [(u.tolist(), value) for u, value in points]
 
         def saved(entry: dict) -> None:
             rounds_done.append(entry)
@@ -459,7 +462,7 @@ class GlobalSearch:
                 ends = kept(finished[0]["kept"])
             else:
                 ends = self.best(u, samples(u, 0, unit()), velocity, per_object, max(1, s.search.starts))
-                saved({"kept": [(point.tolist(), value) for point, value in ends], "sampler": rng.bit_generator.state})
+                saved({"kept": listed(ends), "sampler": rng.bit_generator.state})
             n = len(ends)
             rounds = 1 + n * s.search.rounds
             restored = 1 + (len(finished) - 1) * n if finished else 0
@@ -473,7 +476,7 @@ class GlobalSearch:
                 else:
                     found = self.best_of([(start, samples(start, number, draws[k][number - 1]), loss)
                                           for k, (start, loss) in enumerate(ends)], velocity, per_object)
-                    saved({"starts": [[(point.tolist(), value) for point, value in f] for f in found]})
+                    saved({"starts": [listed(f) for f in found]})
                 ends = [f[0] if f else end for f, end in zip(found, ends, strict=True)]
                 for k in range(n):
                     searched(1 + (number - 1) * n + k + 1)
