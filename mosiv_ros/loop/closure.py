@@ -123,6 +123,7 @@ from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
 from mosiv_ros.sim.materials import MATERIAL_PARAM_NAMES
+from mosiv_ros.sim.runtime import resolve_device
 from mosiv_ros.simulation import OFFSET
 
 _LOG = logging.getLogger(__name__)
@@ -300,6 +301,8 @@ class LoopClosure:
         self.flight: FreeFlight | None = None
         self.round = 0
         self.floor = Floor.of(scene)
+        self.device = resolve_device(identify.device)
+        """Where the residual's silhouettes render: the fit's device (torch's, a GPU or the CPU)."""
 
     # --- models ------------------------------------------------------------------------------
 
@@ -309,7 +312,7 @@ class LoopClosure:
         moving = [bool(t > self.loop.moving_threshold) for t in np.nan_to_num(travel)]
         times = model.prediction.times
         return Context(list(model.prediction.names), moving, model.scene, float(times[1] - times[0]),
-                       self.views, self.given, self.reobserver)
+                       self.views, self.given, self.reobserver, self.device)
 
     def fitted_frames(self, observations: Observations) -> int:
         """How many of ``observations``' frames come before the held-out stamps."""
@@ -409,7 +412,7 @@ class LoopClosure:
     def analyse(self, prediction: Prediction, observations: Observations) -> ResidualAnalysis:
         views = self.views if self.loop.silhouettes else ()
         return analyse(observations.frames, prediction, self.fitted_frames(observations), self.floor,
-                       views, self.loop.contact_tolerance)
+                       views, self.loop.contact_tolerance, self.device)
 
     def free_flight(self, model: Model, observations: Observations | None = None) -> FreeFlight:
         """The free-flight evidence of the fitted frames of ``observations`` (default: the given).

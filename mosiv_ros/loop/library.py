@@ -79,7 +79,8 @@ class Context:
     """What a candidate needs to know of the model and the data.
 
     Object names, which move, the scene; the frame period, the cameras, the observations the
-    loop was given and, when the recording is at hand, a ``Reobserver`` to remake them.
+    loop was given and, when the recording is at hand, a ``Reobserver`` to remake them; the
+    device silhouettes render on (the fit's).
     """
 
     names: list[str]
@@ -89,6 +90,7 @@ class Context:
     views: list[View]
     given: Observations
     reobserver: Reobserver | None = None
+    device: str = "cpu"
 
     @property
     def moving_names(self) -> list[str]:
@@ -393,7 +395,7 @@ class CameraTimeOffsetCandidate(Candidate):
     def read(self, estimates: Estimates, prediction: Prediction, ctx: Context) -> dict[str, float]:
         span = (self.MAX_FRAMES + 0.5) * ctx.frame_dt
         fitted = {self.label(v.name): camera_time_offset(prediction, ctx.given.frames, v, span,
-                                                         ctx.frame_dt / 50)
+                                                         ctx.frame_dt / 50, ctx.device)
                   for v in ctx.views}
         return {self.label(c): o for c, o in self.relative(fitted, ctx).items()}
 
