@@ -741,6 +741,22 @@ def test_a_search_stopped_after_its_first_round_resumes_there_and_ends_where_an_
     assert not (tmp_path / "ckpt" / SEARCH_FILE).exists()  # the fit's own checkpoint took over
 
 
+def test_a_raced_end_whose_first_stage_diverges_scores_infinite_and_loses():
+    problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6,
+                                       **{"curriculum.horizons": [3, 0], "curriculum.iterations": 3})
+    identifier = Identifier(problem, settings)
+    u, velocity = identifier.pack(), np.zeros((1, 6))
+    velocity[0, :3] = problem.observations.initial_velocities()
+    diverging = velocity.copy()
+    diverging[0, 0] = 20.0  # thrown at the domain's wall: the cube inverts in the first frame
+    states = [FitState(u.copy(), v.copy(), Adam(np.full(len(u) + 6, 0.05)), (u.copy(), v.copy()))
+              for v in (diverging, velocity)]
+    won, scores = identifier.curriculum.race(states)
+    assert won == 1 and np.isinf(scores[0]) and np.isfinite(scores[1])
+    assert (states[0].failures, states[0].history) == (3, [])  # every iteration diverged
+    assert (states[1].failures, len(states[1].history)) == (0, 3)
+
+
 @pytest.mark.slow
 def test_a_fit_stopped_in_its_race_races_again_from_the_searchs_checkpoint(tmp_path, caplog):
     args = ({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.3})
