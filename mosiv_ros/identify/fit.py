@@ -452,6 +452,7 @@ class Identifier:
         adam = Adam(np.r_[np.full(len(u), s.curriculum.learning_rate),
                           np.full(velocity.size, s.curriculum.velocity_learning_rate)])
         search_s, race = 0.0, []
+        self.curriculum.raced = self.curriculum.racing = 0  # no race counted yet in this fit's progress
         checkpoint = Checkpoint(s.checkpoint_dir, signature(
             self.problem, [e.label for e in self.entries], s.result_settings()))
         state = checkpoint.load()
