@@ -485,8 +485,8 @@ class Identifier:
         The best end, unless others score within ``search.race`` of its loss: then each of those
         runs the curriculum's first stage and the one that fits best there goes on
         (``Curriculum.race``). The search's losses do not rank ends that close reliably: on
-        cube_on_slab three ends 1.9 % apart finished Adam in the opposite order
-        (benchmarks/RESULTS.md).
+        cube_on_slab, of three ends 1.9 % apart, the one the search scored worst finished Adam
+        lowest (benchmarks/RESULTS.md).
         """
         s = self.settings
         racers = ends[:1]
