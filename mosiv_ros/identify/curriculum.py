@@ -112,20 +112,18 @@ class Curriculum:
 
     def __init__(self, identifier: Identifier) -> None:
         self.identifier = identifier
-        self.raced = 0
-        """Iterations the progress records count before this state's own: the race's (``race``)."""
-        self.racing = 0
-        """Iterations the race adds to the curriculum's, which the progress records' total counts."""
 
     def stages(self) -> list[int]:
         """Each stage's window length in frames (the whole sequence for 0 or longer)."""
         n = self.identifier.problem.observations.n_frames - 1
         return [h if 0 < h < n else n for h in self.identifier.settings.curriculum.horizons]
 
-    def run(self, state: FitState, saved: Callable[[FitState], None], until: int | None = None) -> FitState:
+    def run(self, state: FitState, saved: Callable[[FitState], None], until: int | None = None,
+            before: int = 0, raced: int = 0) -> FitState:
         """Iterate from ``state`` to the curriculum's end, or to stage ``until``'s start.
 
-        ``saved(state)`` after every iteration.
+        ``saved(state)`` after every iteration. The progress records count ``before`` iterations
+        ahead of this state's own, and ``raced`` more in the total: the race's (``race``).
         """
         fit, s = self.identifier, self.identifier.settings
         n = fit.problem.observations.n_frames - 1
@@ -167,8 +165,8 @@ class Curriculum:
                           "loss": loss, "values": fit.values_of(state.u),
                           "seconds": time.perf_counter() - tick, **fit.timing}
                 state.history.append(record)
-                fit.report({"phase": "fit", "done": self.raced + stage * s.curriculum.iterations + iteration + 1,
-                            "total": self.racing + len(stages) * s.curriculum.iterations, **record})
+                fit.report({"phase": "fit", "done": before + stage * s.curriculum.iterations + iteration + 1,
+                            "total": raced + len(stages) * s.curriculum.iterations, **record})
                 state.stage, state.iteration = stage, iteration + 1
                 saved(state)
         return state
@@ -179,21 +177,23 @@ class Curriculum:
         A state's score is its mean loss over the stage's last pass over its windows: the same
         windows for every state, an iteration's loss that of the point the step before reached;
         infinite if an iteration of that pass diverged. The lowest goes on; the states are left
-        at the stage's end. The progress records count every state's iterations.
+        at the stage's end. The progress records count every state's iterations, and the
+        curriculum's after them (``run``'s ``raced``: ``raced(len(states))``).
         """
         fit, s = self.identifier, self.identifier.settings
         iterations = s.curriculum.iterations
         n = fit.problem.observations.n_frames - 1
         last_pass = min(iterations, len(window_starts(n, self.stages()[0], s.curriculum.windows)))
-        self.racing = (len(states) - 1) * iterations
         scores = []
         for r, state in enumerate(states):
-            self.raced = r * iterations
-            self.run(state, lambda _: None, until=1)
+            self.run(state, lambda _: None, until=1, before=r * iterations, raced=self.raced(len(states)))
             losses = [h["loss"] for h in state.history if h["iteration"] >= iterations - last_pass]
             scores.append(float(np.mean(losses)) if len(losses) == last_pass else math.inf)
-        self.raced = self.racing
         return int(np.argmin(scores)), scores
+
+    def raced(self, ends: int) -> int:
+        """Iterations a race of ``ends`` adds to the curriculum's (none for one end)."""
+        return max(ends - 1, 0) * self.identifier.settings.curriculum.iterations
 
     def retreat(self, state: FitState) -> tuple[np.ndarray, np.ndarray, str]:
         """Where to go after a diverged iteration: (u, velocity, what was done).

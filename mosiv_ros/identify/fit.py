@@ -452,7 +452,6 @@ class Identifier:
         adam = Adam(np.r_[np.full(len(u), s.curriculum.learning_rate),
                           np.full(velocity.size, s.curriculum.velocity_learning_rate)])
         search_s, race = 0.0, []
-        self.curriculum.raced = self.curriculum.racing = 0  # no race counted yet in this fit's progress
         checkpoint = Checkpoint(s.checkpoint_dir, signature(
             self.problem, [e.label for e in self.entries], s.result_settings()))
         state = checkpoint.load()
@@ -471,7 +470,8 @@ class Identifier:
             # stopped before its first iteration after the search and the race ends, it resumes
             # here; stopped in the race, it races again from the search's checkpoint
             checkpoint.save(state)
-        state = self.curriculum.run(state, checkpoint.save)
+        extra = self.curriculum.raced(len(race))  # the race's iterations, counted in the progress
+        state = self.curriculum.run(state, checkpoint.save, before=extra, raced=extra)
         u, velocity, loss, per = self._final(state)
         values = {name: self.offsets.copy() if name == OFFSET else self.sim.params.get(name)[0]
                   for name in dict.fromkeys(e.name for e in self.entries)}
@@ -494,10 +494,11 @@ class Identifier:
             close = s.search.race > 0 and loss <= ends[0][1] * (1 + s.search.race)
             if close and not any(np.array_equal(u, other) for other, _ in racers):
                 racers.append((u, loss))
+        if len(racers) == 1 or not self.curriculum.stages() or s.curriculum.iterations == 0:
+            u = ends[0][0]
+            return FitState(u, velocity, adam, (u.copy(), velocity.copy())), []
         states = [FitState(u.copy(), velocity.copy(), copy.deepcopy(adam), (u.copy(), velocity.copy()))
                   for u, _ in racers]
-        if len(states) == 1 or not self.curriculum.stages() or s.curriculum.iterations == 0:
-            return states[0], []
         won, scores = self.curriculum.race(states)
         race = [{"search_loss": loss, "stage_loss": score,
                  "seconds": sum(h["seconds"] for h in state.history), "went_on": k == won}
