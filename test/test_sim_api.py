@@ -26,6 +26,7 @@ from mosiv_ros.sim.effects import GridView
 from mosiv_ros.sim.params import REPLICAS, lane_count, lane_particle, param
 from mosiv_ros.sim.runtime import lock_file
 from mosiv_ros.sim.sampling import box, sphere
+from mosiv_ros.sim.simulator import GRAPH_SUBSTEPS, graph_runs
 
 
 def test_out_of_range_parameter_is_refused_naming_object_parameter_and_range():
@@ -298,7 +299,8 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
         grid = _Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False)
         sim._replicate()
         sim._collider_poses(0, n_sub, dt)
-        sim._substep(src, dst, grid, 0, dt)
+        sim._set_step(dt)
+        sim._substep(src, dst, grid, 0)
         box_lo, box_dims = sim._active_box(src)
         ijk = np.stack(np.unravel_index(np.arange(sim.n_nodes), sim.dims), axis=1)
         inside = np.all((ijk >= box_lo) & (ijk < np.add(box_lo, box_dims)), axis=1)
@@ -314,28 +316,48 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
                     reason="CUDA graphs need a GPU: run with MOSIV_TEST_DEVICE=cuda:0")
 def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches():
     # a finger pushing a block: the collider's poses change every frame, so a graph that kept
-    # the poses of the frame it was captured in would push from the wrong place
+    # the poses of the frame it was captured in would push from the wrong place; and the block's
+    # stiffness changes between rollouts, as a fit's does, so that frames of 42 and 54 substeps
+    # share the graphs of their first 32 (``graph_runs``), each run at its own dt
     dx, floor = 0.02, 0.1
     finger = Collider("sphere", (0.04,), np.array([0.0, 0.5]),
                       np.array([[0.1, 0.2, floor + 0.03], [0.6, 0.2, floor + 0.03]]), friction=0.5)
+    moduli = (1e5, 1e5, 2e5, 2e5, 1e5)  # graphs: captured on each key's second run, replayed after
     results = {}
     for graphs in (False, True):
         sim = scene([box((0.25, 0.2, floor + 0.03), (0.03, 0.03, 0.03), dx / 2)],
                     [ObjectModel("block", "elastic", {"E": 1e5})], dx=dx, lo=(0, 0, 0),
                     hi=(0.8, 0.4, 0.3), colliders=[finger], ground=Ground(height=floor),
                     cuda_graphs=graphs)
-        for _ in range(2):  # graphs: captured on each key's second run, replayed after
+        results[graphs] = []
+        for E in moduli:
+            sim.params.set("E", E)
+            plain = sim.rollout(8)
             traj = sim.rollout(8, grad=True)
             dL = np.zeros_like(traj, dtype=np.float64)
             dL[1:, 0, :, 0] = 1.0  # d(sum of x over frames)
             grads = sim.backward(dL)
+            results[graphs].append((sim.time_step()[0], plain, traj, grads.params["E"][0, 0], grads.v0))
         assert bool(sim._graphs) == graphs
-        results[graphs] = traj, grads.params["E"][0, 0], grads.v0
-    (traj_eager, dE_eager, dv_eager), (traj_graph, dE_graph, dv_graph) = results[False], results[True]
-    assert traj_eager[-1, 0, :, 0].mean() > 0.27  # the finger reached and pushed the block
-    assert np.abs(traj_graph - traj_eager).max() < 1e-5
-    assert dE_graph == pytest.approx(dE_eager, rel=1e-3)
-    assert np.abs(dv_graph - dv_eager).max() < 1e-3 * np.abs(dv_eager).max()
+    assert [r[0] for r in results[True]] == [42, 42, 54, 54, 42]
+    shared = {("kept", 0, 32), ("adjoint", 0, 32), ("frame", 0, 32, 0)}
+    assert shared | {("kept", 32, 8), ("kept", 32, 16)} <= set(sim._graphs)
+    assert results[False][0][2][-1, 0, :, 0].mean() > 0.27  # the finger reached and pushed the block
+    for eager, graph in zip(results[False], results[True], strict=True):
+        assert np.abs(graph[1] - eager[1]).max() < 1e-5 and np.abs(graph[2] - eager[2]).max() < 1e-5
+        assert graph[3] == pytest.approx(eager[3], rel=1e-3)
+        assert np.abs(graph[4] - eager[4]).max() < 1e-3 * np.abs(eager[4]).max()
+    assert np.abs(results[True][2][2] - results[True][0][2]).max() > 1e-4  # the stiffer block moved otherwise
+
+
+def test_graph_runs_cover_a_frame_in_runs_that_frames_of_other_lengths_share():
+    runs = {n: graph_runs(n) for n in range(1, 400)}
+    for n, frame in runs.items():
+        assert [first for first, _ in frame] == [0, *np.cumsum([size for _, size in frame])[:-1]]
+        assert sum(size for _, size in frame) == n
+        assert all(size <= GRAPH_SUBSTEPS and size & (size - 1) == 0 and first % size == 0 for first, size in frame)
+    assert graph_runs(100) == [(0, 32), (32, 32), (64, 32), (96, 4)]
+    assert graph_runs(54) == [(0, 32), (32, 16), (48, 4), (52, 2)]
 
 
 def test_cell_order_is_invisible_to_callers():
@@ -399,15 +421,15 @@ def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named
     src, dst = _State(n, sim.device, False), _State(n, sim.device, False)
     grid = _Grid(1, 1, sim.dims, n, False, sim.device, False)
     args = dict(zip([a.label for a in kernels.g2p.adj.args],
-                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0},
+                    _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "own": sim._steps, "substep": 0},
                           sim._scene), strict=True))
     assert args["src_x"] is src.x and args["dst_x"] is dst.x and args["dst_C"] is dst.C
     assert args["grid_v"] is grid.v and args["ground_height"] is sim.params["ground.height"]
-    assert args["dt"] == 1e-3 and args["n_particles"] == n and args["has_ground"] == 1
+    assert args["own_dt"] is sim._steps.dt and args["n_particles"] == n and args["has_ground"] == 1
     with pytest.raises(TypeError, match=r"kernel g2p: no value for its parameter 'dst_x'"):
-        _bind(kernels.g2p, {"src": src, "grid": grid, "dt": 1e-3, "substep": 0}, sim._scene)
+        _bind(kernels.g2p, {"src": src, "grid": grid, "own": sim._steps, "substep": 0}, sim._scene)
     with pytest.raises(TypeError, match=r"kernel g2p takes nothing from collider"):
-        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "dt": 1e-3, "substep": 0,
+        _bind(kernels.g2p, {"src": src, "dst": dst, "grid": grid, "own": sim._steps, "substep": 0,
                             "collider": sim._colliders}, sim._scene)
 
 
@@ -434,11 +456,12 @@ def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds()
     grids = [_Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False) for _ in range(2)]
     sim._replicate()
     sim._collider_poses(0, n_sub, dt)
+    sim._set_step(dt)
     for grid, starts in zip(grids, ([x], [elsewhere, x]), strict=True):
         for positions in starts:
             src, dst = (_State(2 * sim.n_particles, sim.device, False) for _ in range(2))
             sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
-            sim._substep(src, dst, grid, 0, dt)
+            sim._substep(src, dst, grid, 0)
     for name in ("m", "p", "a", "v", "present_m", "present_p", "present_mu"):
         fresh, reused = (getattr(g, name).numpy() for g in grids)
         assert np.count_nonzero(fresh) > 0 and _equal(fresh, reused), name

@@ -66,7 +66,6 @@ class GridView:
     dims: tuple[int, int, int]
     lo: np.ndarray
     dx: float
-    dt: float
     device: str
     box_lo: tuple[int, int, int]
     box_dims: tuple[int, int, int]
@@ -94,7 +93,6 @@ class ParticleView:
     n_batch: int
     n_particles: int
     n_objects: int
-    dt: float
     device: str
 
 

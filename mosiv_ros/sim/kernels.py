@@ -12,7 +12,9 @@ Eq. 123) and APIC affine velocity fields C (Jiang et al. 2015). Layouts:
 Kernel parameters are named for where the simulator finds their values (``simulator._bind``):
 ``src_x``, ``dst_b``, ... a field of a particle state, ``grid_m``, ... of the substep's grid,
 ``collider_pos``, ... of the colliders, ``E``, ``ground_height``, ... a parameter's replicas,
-and sizes and geometry (``n_particles``, ``dims``, ``lo``, ``dx``, ...) by name.
+and sizes and geometry (``n_particles``, ``dims``, ``lo``, ``dx``, ...) by name. Each batch
+row's substep is read from ``own_dt``, never passed as a value, so that a captured CUDA graph
+of some substeps serves every time step (``simulator.graph_runs``).
 docs/simulator.md maps the substep onto the method.
 
 **Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
@@ -132,15 +134,6 @@ def bspline_weights(fx: float):
 
 
 @wp.func
-def own_step(own_dt: wp.array(dtype=float), batch: int, dt: float):
-    """The substep of batch row ``batch``: its own (``own_dt``, rows at their own time steps) or ``dt``."""
-    step = dt
-    if own_dt.shape[0] > 0:
-        step = own_dt[batch]
-    return step
-
-
-@wp.func
 def own_turn(own_substeps: wp.array(dtype=int), batch: int, substep: int):
     """Whether row ``batch`` takes substep ``substep`` of the frame (every row does, without own steps)."""
     taken = True
@@ -175,7 +168,6 @@ def p2g(
     dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
-    dt: float,
     own_dt: wp.array(dtype=float),
     own_substeps: wp.array(dtype=int),
     substep: int,
@@ -196,7 +188,7 @@ def p2g(
     if not own_turn(own_substeps, batch, substep):  # a row whose frame is done: its state stays
         dst_b[i] = src_b[i]
         return
-    h = own_step(own_dt, batch, dt)
+    h = own_dt[batch]
     k = obj[i - batch * n_particles]
     q = batch * n_objects + k
     fam = family[k]
@@ -401,7 +393,6 @@ def contact_totals(
     dims: wp.vec3i,
     box_lo: wp.vec3i,
     box_dims: wp.vec3i,
-    dt: float,
     own_dt: wp.array(dtype=float),
     grid_present_m: wp.array(dtype=float),
     grid_present_p: wp.array(dtype=wp.vec3),
@@ -424,7 +415,7 @@ def contact_totals(
     if m > node_total(grid_m, batch * n_objects * n_nodes + i % n_nodes, n_nodes, n_objects) * CONTACT_MASS_FRACTION:
         wp.atomic_add(grid_present_m, node, m)
         wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, uniform, batch, i,
-                                                           own_step(own_dt, batch, dt)) * m)
+                                                           own_dt[batch]) * m)
         wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
 
 
@@ -460,7 +451,6 @@ def grid_update(
     box_dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
-    dt: float,
     own_dt: wp.array(dtype=float),
     grid_v: wp.array(dtype=wp.vec3),
 ):
@@ -480,7 +470,7 @@ def grid_update(
     j = (node // dims[2]) % dims[1]
     l = node % dims[2]
     x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
-    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_step(own_dt, batch, dt))
+    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
 
     if n_objects > 1:
         at = batch * n_nodes + node
@@ -553,7 +543,6 @@ def g2p(
     dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
-    dt: float,
     own_dt: wp.array(dtype=float),
     own_substeps: wp.array(dtype=int),
     substep: int,
@@ -603,7 +592,7 @@ def g2p(
                 moment_z += g_w * float(e)
     new_C = (wp.mat33(moment_x[0], moment_y[0], moment_z[0], moment_x[1], moment_y[1], moment_z[1],
                       moment_x[2], moment_y[2], moment_z[2]) - wp.outer(new_v, fx)) * (4.0 * inv_dx)
-    x_new = x_i + new_v * own_step(own_dt, batch, dt)
+    x_new = x_i + new_v * own_dt[batch]
     if has_ground != 0:
         # The grid condition acts at nodes, up to a cell below the plane; a particle that ends
         # a substep below the plane is put back onto it and loses its velocity into it, so
@@ -645,7 +634,6 @@ def g2p_adjoint(
     dims: wp.vec3i,
     lo: wp.vec3,
     dx: float,
-    dt: float,
     own_dt: wp.array(dtype=float),
     own_substeps: wp.array(dtype=int),
     substep: int,
@@ -689,7 +677,7 @@ def g2p_adjoint(
     wy = bspline_weights(fx[1])
     wz = bspline_weights(fx[2])
     offset = (batch * n_objects + k) * n_nodes
-    step = own_step(own_dt, batch, dt)
+    step = own_dt[batch]
     adj_v = adj_dst_v[i]  # of the gathered velocity, once the ground's projection is undone
     adj_x = adj_dst_x[i]  # of the advected position x + step v, likewise
     if has_ground != 0:

@@ -577,9 +577,11 @@ class _Colliders:
 
 @dataclass(frozen=True)
 class _OwnSteps:
-    """Each batch row's own substep (``dt``) and substeps per frame, where rows take their own steps.
+    """Each batch row's substep (``dt``) and, where rows take their own steps, substeps per frame.
 
-    The kernels read them as ``own_<name>`` (``Simulator.rollout(own_steps=True)``).
+    The kernels read them as ``own_<name>``. A rollout at one time step gives every row its
+    ``dt`` and no ``substeps`` (every row takes every substep); ``rollout(own_steps=True)``
+    gives each row its own of both.
     """
 
     dt: wp.array
@@ -591,6 +593,28 @@ ADJOINT_PARTS = 2
 SPREAD_BLOCKS = 128
 """On a GPU, P2G and G2P take at least this many thread blocks where they have the warps for
 them (``Simulator._spread``): about an H100's 132 multiprocessors."""
+GRAPH_SUBSTEPS = 32
+"""On a GPU, a frame's substeps run as captured graphs of at most this many substeps each
+(``graph_runs``), which frames of every substep count share."""
+
+
+def graph_runs(n_sub: int) -> list[tuple[int, int]]:
+    """A frame's ``n_sub`` substeps as runs (first, count), each one captured graph on a GPU.
+
+    A fit's substeps per frame change with its stiffness from one iteration to the next, and a
+    graph of a whole frame, captured for one count, was seldom replayed: the frames of a fit
+    launched their kernels one by one. The runs are ``GRAPH_SUBSTEPS`` long, and the rest falls
+    into runs of halving powers of two, each starting at a multiple of its length, so that
+    frames of every count share them (the kernels read the step from memory, not from their
+    arguments: ``kernels``).
+    """
+    runs, first, size = [], 0, GRAPH_SUBSTEPS
+    while first < n_sub:
+        while first + size > n_sub:
+            size //= 2
+        runs.append((first, size))
+        first += size
+    return runs
 
 
 def _block_warps(n: int) -> int:
@@ -618,8 +642,8 @@ class _FrameTape:
     A state per substep boundary and a grid per substep, their values in one allocation
     (``values``) and their gradients in another (``grads``), laid out state 0, grid 0, state 1,
     ... so that a frame of n substeps is the first ``prefix(n)`` bytes of each; the colliders'
-    poses over the frame; and per substep count the tape that last recorded a frame here
-    (``Simulator._record_frame``).
+    poses over the frame; and the tapes that last recorded a frame here, its head's (``"head"``)
+    and each run's of substeps (``(first, count)``; ``Simulator._record_frame``).
     """
 
     states: list[_State]
@@ -629,7 +653,7 @@ class _FrameTape:
     grads: wp.array
     state_bytes: int
     grid_bytes: int
-    tapes: dict[int, wp.Tape] = field(default_factory=dict)
+    tapes: dict[tuple[int, int] | str, wp.Tape] = field(default_factory=dict)
 
     def prefix(self, n_sub: int) -> int:
         """The bytes of a frame of ``n_sub`` substeps (values, or gradients)."""
@@ -791,8 +815,6 @@ class Simulator:
             "family": self.family, "normal_rank": self.normal_rank,
             "ranked_object": self.ranked_object, "has_ground": int(config.ground is not None),
             "uniform": self._uniform_sums[-1] if self._uniform_sums else self._uniform_parts[0],
-            # no row takes its own time step (``rollout(own_steps=True)`` gives these)
-            "own_dt": wp.empty(0, dtype=float, device=d), "own_substeps": wp.empty(0, dtype=int, device=d),
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
         self._spread(kernels.BLOCK_WARPS if self.device == "cpu" else _block_warps(self.n_batch * self.n_particles))
@@ -816,6 +838,9 @@ class Simulator:
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
         self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
                                     wp.zeros(self.n_batch, dtype=int, device=d))
+        self._steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d), wp.empty(0, dtype=int, device=d))
+        self._step = math.nan
+        """The dt in ``_steps`` (``_set_step``)."""
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -1116,15 +1141,15 @@ class Simulator:
         if tape is not None:
             tape.record_launch(kernel, dim, 0, list(recorded.args), [], self.device)
 
-    def _substep(self, src: _State, dst: _State, grid: _Grid, row: int, dt: float,
+    def _substep(self, src: _State, dst: _State, grid: _Grid, row: int,
                  colliders: _Colliders | None = None, own: bool = False, cleared: bool = False) -> None:
         """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
 
         ``row`` is the substep's index in its frame (which of the poses of ``colliders``, by
-        default the rollouts', apply). ``own``: each batch row at its own time step
-        (``rollout``), ``dt`` unused. ``cleared``: ``grid`` is zero already (``_record_frame``).
+        default the rollouts', apply). The step is ``_set_step``'s, or with ``own`` each batch
+        row's own (``rollout``). ``cleared``: ``grid`` is zero already (``_record_frame``).
         """
-        steps = {"own": self._own_steps} if own else {}  # else the scene's empty arrays: one dt
+        steps = {"own": self._own_steps if own else self._steps}
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
         if cleared:
@@ -1132,13 +1157,12 @@ class Simulator:
         else:
             grid.zero((box_lo, box_dims))
         if self._stress:
-            view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, dt, d)
+            view = ParticleView(src.x, src.v, src.C, src.b, self.obj, grid.tau, B, N, K, d)
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
-        view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, dt, d, box_lo,
-                        box_dims)
+        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, **steps)
+        view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, d, box_lo, box_dims)
         for effect in self.effects:
             if effect.has_accelerate:
                 effect.accelerate(view, self._values(effect))
@@ -1147,10 +1171,10 @@ class Simulator:
             self._box_args = ((box_lo, box_dims), {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)})
         box = self._box_args[1]
         if K > 1:
-            self._run(kernels.contact_totals, n_box, grid=grid, **box, dt=dt, **steps)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, **steps)
         self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
-                  **box, dt=dt, **steps)
-        self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, dt=dt, substep=row, **steps)
+                  **box, **steps)
+        self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, **steps)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
@@ -1177,34 +1201,64 @@ class Simulator:
             box_dims.append(min(base[1] + 3, top + 2) - box_lo[-1] + 1)  # the stencil's last node, plus one
         return tuple(box_lo), tuple(box_dims)
 
-    def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int,
-               dt: float, own: bool = False) -> None:
-        """One frame's substeps from ``states[current]``, ping-ponging between the two states."""
-        self._replicate()
-        for s in range(n_sub):
-            self._substep(states[current], states[1 - current], grid, s, dt, own=own)
+    def _set_step(self, dt: float) -> None:
+        """Every batch row's substep, where the kernels read it (``_OwnSteps``)."""
+        if dt != self._step:
+            self._steps.dt.fill_(dt)
+            self._step = dt
+
+    def _chunks(self, n_sub: int) -> list[tuple[int, int]]:
+        """A frame's substeps as runs (first, count): ``graph_runs`` with CUDA graphs, else the frame."""
+        return graph_runs(n_sub) if self._use_graphs else [(0, n_sub)]
+
+    def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int, own: bool = False) -> int:
+        """One frame's substeps from ``states[current]``, ping-ponging between the two states; where it ends."""
+        kind = "own" if own else "frame"
+        self._launch((kind, "replicate"), self._replicate)
+        for first, size in self._chunks(n_sub):
+            at = (current + first) % 2
+            self._launch((kind, first, size, at), partial(self._substeps, states, at, grid, first, size, own))
+        return (current + n_sub) % 2
+
+    def _substeps(self, states: list[_State], current: int, grid: _Grid, first: int, size: int,
+                  own: bool) -> None:
+        """Substeps ``first`` to ``first + size - 1`` of a frame from ``states[current]`` (``_frame``)."""
+        for s in range(first, first + size):
+            self._substep(states[current], states[1 - current], grid, s, own=own)
             current = 1 - current
 
-    def _record_frame(self, frame: _FrameTape, n_sub: int, dt: float) -> None:
-        """Compute one frame from ``frame.states[0]`` on a tape.
+    def _record_frame(self, frame: _FrameTape, n_sub: int) -> None:
+        """Compute one frame from ``frame.states[0]`` on tapes: its head's and each run's (``_chunks``).
 
         Its gradients are not cleared here: a backward that recomputes the frame clears them
-        first (``_zero_frame_grad``), a kept frame's adjoint just before it runs. On a GPU one
-        memset clears every grid of the frame (and the states after the first, which the substeps
-        overwrite), where a memset per substep had cost three times as long; the CPU clears each
-        grid's box (``_Grid.zero``).
+        first (``_zero_frame_grad``), a kept frame's adjoint just before it runs.
         """
-        cleared = self.device != "cpu"
-        if cleared:
+        self._launch(("kept", "head", n_sub), partial(self._record_head, frame, n_sub))
+        for first, size in self._chunks(n_sub):
+            self._launch(("kept", first, size), partial(self._record_run, frame, first, size))
+
+    def _record_head(self, frame: _FrameTape, n_sub: int) -> None:
+        """A recorded frame's clearing and, on its head's tape, its parameter replicas.
+
+        On a GPU one memset clears every grid of the frame (and the states after the first,
+        which the substeps overwrite), where a memset per substep had cost three times as long;
+        the CPU clears each grid's box (``_Grid.zero``).
+        """
+        if self.device != "cpu":
             after, word = _Arena.raw(frame.prefix(n_sub) - frame.state_bytes)
             wp.array(ptr=frame.values.ptr + frame.state_bytes, dtype=word, shape=(after,),
                      device=self.device, owner=False).zero_()
-        tape = frame.tapes[n_sub] = wp.Tape()
+        tape = frame.tapes["head"] = wp.Tape()
         with tape:
             self._replicate()
-            for s in range(n_sub):
-                self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, dt, frame.colliders,
-                              cleared=cleared)
+
+    def _record_run(self, frame: _FrameTape, first: int, size: int) -> None:
+        """Substeps ``first`` to ``first + size - 1`` of a recorded frame, on the run's tape."""
+        tape = frame.tapes[(first, size)] = wp.Tape()
+        with tape:
+            for s in range(first, first + size):
+                self._substep(frame.states[s], frame.states[s + 1], frame.grids[s], s, frame.colliders,
+                              cleared=self.device != "cpu")
 
     def _zero_frame_grad(self, frame: _FrameTape) -> None:
         """Clear the gradients of ``frame``'s states and grids.
@@ -1231,7 +1285,13 @@ class Simulator:
         CPU, P2G's adjoint runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
         (``kernels.p2g`` says why it may).
         """
-        tape = frame.tapes[n_sub]
+        self._launch(("adjoint", "seed", n_sub), partial(self._seed_adjoint, frame, n_sub, adjoint, seed))
+        for run in reversed(self._chunks(n_sub)):
+            self._launch(("adjoint", *run), partial(self._tape_adjoint, frame, run, helper))
+        self._launch(("adjoint", "head"), partial(self._head_adjoint, frame, adjoint, helper))
+
+    def _seed_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array) -> None:
+        """Start a frame's adjoint (``_frame_adjoint``): the replicas' gradients cleared, the last state's set."""
         self.params.zero_replica_grad()
         for total in self._uniform_sums:
             total.grad.zero_()
@@ -1241,13 +1301,21 @@ class Simulator:
         wp.copy(last.v.grad, adjoint.v)
         wp.copy(last.C.grad, adjoint.C)
         wp.copy(last.b.grad, adjoint.b)
+
+    def _tape_adjoint(self, frame: _FrameTape, key: tuple[int, int] | str, helper: ThreadPoolExecutor | None) -> None:
+        """The adjoints of the launches on ``frame``'s tape ``key`` (a run's, or ``"head"``), last first."""
+        tape = frame.tapes[key]
         # tape.backward() less its recording: its adjoint launches would land on a tape that
         # another thread records
         for position, launch in enumerate(reversed(tape.launches)):
             if callable(launch):
                 launch()
                 continue
-            self._adjoint_of(launch, tape, (id(frame), position), helper)
+            self._adjoint_of(launch, tape, (id(frame), key, position), helper)
+
+    def _head_adjoint(self, frame: _FrameTape, adjoint: _State, helper: ThreadPoolExecutor | None) -> None:
+        """End a frame's adjoint: the head's (replicas' gradients into the parameters'), dL/d(state) at its start."""
+        self._tape_adjoint(frame, "head", helper)
         for dst, src in zip(adjoint.arrays, frame.states[0].arrays, strict=True):
             wp.copy(dst, src.grad)
 
@@ -1367,7 +1435,7 @@ class Simulator:
         """Drop the recorded commands and the captured graphs of ``kinds`` (their keys' first item).
 
         The arrays they ran on are being replaced: a rollout's colliders (``"frame"``), or the
-        tape's buffers (``"backward"``, ``"kept"``, ``"adjoint"``).
+        tape's buffers (``"kept"``, ``"adjoint"``).
         """
         for key in [key for key in self._graphs if key[0] in kinds]:
             del self._graphs[key]
@@ -1485,6 +1553,7 @@ class Simulator:
             n_sub, dt = int(row_substeps.max()), row_dt
         else:
             n_sub, dt = self.time_step(substeps)
+            self._set_step(dt)
         B, N = self.n_batch, self.n_particles
         self._record = None  # a rollout that stops diverging leaves none (kept frames are rewritten)
         if self._buffers is None:
@@ -1513,21 +1582,16 @@ class Simulator:
         for frame in range(n_frames):
             if kept:  # recorded on a tape, whose states and grids are kept for ``backward``
                 self._pose_colliders(work.colliders, start_frame + frame, n_sub, dt)
-                self._launch(("kept", n_sub, dt, frame == 0), partial(
-                    self._record_kept, work, states[0] if frame == 0 else work.states[n_sub], n_sub, dt))
+                work.states[0].copy_from(states[0] if frame == 0 else work.states[n_sub])
+                self._record_frame(work, n_sub)
                 wp.copy(kept[frame], work.values, count=work.words(n_sub))
                 start, state = self._kept_states(kept[frame], work, n_sub)
                 if frame == 0:
                     checkpoints.append(start)
             else:
-                if own_steps:  # each row's own dt and substeps are read from the device
-                    self._launch(("own", n_sub, current),
-                                 partial(self._frame, states, current, grid, n_sub, 0.0, True))
-                else:
+                if not own_steps:  # each row's own dt and substeps are read from the device
                     self._collider_poses(start_frame + frame, n_sub, dt)
-                    self._launch(("frame", n_sub, dt, current),
-                                 partial(self._frame, states, current, grid, n_sub, dt))
-                current = (current + n_sub) % 2
+                current = self._frame(states, current, grid, n_sub, own_steps)
                 state = states[current]
             if check:
                 frame_stats = stats[frame * row:(frame + 1) * row]
@@ -1566,6 +1630,7 @@ class Simulator:
         if dL_dx.shape != (n_frames + 1, B, N, 3):
             raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
         adjoint, seed = self._adjoint_state()
+        self._set_step(dt)
         self.params.zero_grad()
         self.volume.grad.zero_()
         for array in adjoint.arrays:
@@ -1590,26 +1655,25 @@ class Simulator:
             return frame
 
         kept, self._record["kept"] = self._record["kept"], None  # a second backward recomputes
-        if kept:  # a frame's states and grids back in place, its adjoint (one graph on a GPU)
+        if kept:  # a frame's states and grids back in place, its adjoint
             frame = frames[0]
             for index in reversed(range(n_frames)):
                 prepare(index)
                 seeded(index)
-                self._launch(("adjoint", n_sub, dt), partial(self._kept_adjoint, frame, n_sub, adjoint, seed))
+                self._kept_adjoint(frame, n_sub, adjoint, seed)
             return self._gradients(adjoint)
 
-        if len(frames) == 1:  # a CUDA device: a frame's recomputation and adjoint, one graph
+        if len(frames) == 1:  # a CUDA device: a frame's recomputation, then its adjoint
             frame = frames[0]
             for index in reversed(range(n_frames)):
                 prepare(index)
                 seeded(index)
-                self._launch(("backward", n_sub, dt), partial(self._recomputed_adjoint, frame, n_sub, dt,
-                                                              adjoint, seed))
+                self._recomputed_adjoint(frame, n_sub, adjoint, seed)
         else:  # the CPU: a second thread recomputes the frame before while this one's adjoint runs
             def recorded(index: int) -> _FrameTape:
                 frame = prepare(index)
                 self._zero_frame_grad(frame)
-                self._record_frame(frame, n_sub, dt)
+                self._record_frame(frame, n_sub)
                 return frame
 
             with ThreadPoolExecutor(1) as ahead, ThreadPoolExecutor(ADJOINT_PARTS - 1) as helper:
@@ -1657,7 +1721,7 @@ class Simulator:
         """
         if self._tape_buffers is None or len(self._tape_buffers[0].grids) < n_sub:
             self._tape_buffers = None  # free the old buffers before allocating the new ones
-            self._forget_graphs("backward", "kept", "adjoint")
+            self._forget_graphs("kept", "adjoint")
             self._tape_buffers = [self._frame_tape(self._capacity(n_sub))
                                   for _ in range(2 if self.device == "cpu" else 1)]
         return self._tape_buffers
@@ -1703,16 +1767,10 @@ class Simulator:
         return (_State(total, self.device, False, (views[0], None)),
                 _State(total, self.device, False, (views[1], None)))
 
-    def _record_kept(self, frame: _FrameTape, start: _State, n_sub: int, dt: float) -> None:
-        """Record a frame of a rollout from ``start`` on ``frame`` (``_kept_frames`` says why)."""
-        frame.states[0].copy_from(start)
-        self._record_frame(frame, n_sub, dt)
-
-    def _recomputed_adjoint(self, frame: _FrameTape, n_sub: int, dt: float, adjoint: _State,
-                            seed: wp.array) -> None:
-        """A frame recomputed from ``frame.states[0]`` on a tape, then its adjoint (a GPU's backward)."""
+    def _recomputed_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array) -> None:
+        """A frame recomputed from ``frame.states[0]`` on tapes, then its adjoint (a GPU's backward)."""
         self._zero_frame_grad(frame)
-        self._record_frame(frame, n_sub, dt)
+        self._record_frame(frame, n_sub)
         self._frame_adjoint(frame, n_sub, adjoint, seed)
 
     def _kept_adjoint(self, frame: _FrameTape, n_sub: int, adjoint: _State, seed: wp.array) -> None:
