@@ -1517,7 +1517,7 @@ class Simulator:
         """Whether ``rollout(own_steps=True)`` may step each batch row at its own time step.
 
         Not with colliders (their poses are the frame's, one per substep of one time step) or
-        with effects that add stresses or grid accelerations (their kernels take one dt).
+        with effects that add stresses or grid accelerations (not tested with rows at their own steps).
         """
         return not self.config.colliders and not any(e.has_stress or e.has_accelerate for e in self.effects)
 
