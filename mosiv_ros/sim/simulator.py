@@ -12,9 +12,10 @@ keeps a copy of them, and the backward puts each back (one copy) instead of reco
 
 On a CUDA device a frame's substeps are hundreds of small kernel launches, and at the particle
 counts of an identification (thousands) launching them from Python costs more than running
-them. So each frame (forward) and each frame's recomputation and adjoint (backward) is captured
-once as a CUDA graph, on its second run with the same substeps, and replayed from then on; the
-arrays a graph touches live as long as the simulator (``SimConfig.cuda_graphs`` turns this off).
+them. So a frame's substeps (forward) and their adjoints (backward) run as CUDA graphs of runs
+of substeps that frames of every substep count share (``graph_runs``), each captured on its
+second run and replayed from then on; the arrays a graph touches live as long as the simulator
+(``SimConfig.cuda_graphs`` turns this off).
 
 Time step: ``n`` equal substeps per frame, the fewest that keep dt below the CFL bound
 ``cfl * dx / (c + max_speed)`` (c the largest elastic or acoustic wave speed over objects and
@@ -94,8 +95,9 @@ class SimConfig:
     The grid covers the box ``lo``..``hi`` (metres, world frame) with spacing ``dx``; particles
     must start at least ``WALL_CELLS + 1`` cells inside it. ``max_speed`` is the material speed
     (m/s) the CFL bound allows for on top of the wave speed. ``cuda_graphs``: on a CUDA device,
-    replay each frame's substeps (and each frame's backward) as a captured CUDA graph; off, every
-    kernel is launched from Python (same results up to the order of float atomics).
+    replay a frame's substeps (and their adjoints) as captured CUDA graphs of runs of substeps
+    (``graph_runs``); off, every kernel is launched from Python (same results up to the order of
+    float atomics).
     ``cell_order``: keep the particles sorted by grid cell inside the simulator (callers see
     their own order). None (default): on a CUDA device, sort when the given order scatters
     neighbours (fewer than ``SORT_BELOW`` of consecutive particles share their stencil's cell);
