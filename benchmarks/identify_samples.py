@@ -7,7 +7,8 @@ Runs ``mosiv_ros.pipeline.run`` (the same as ``mosiv run``: reconstruction, lift
 first 70 % of the frames, uncertainty, twin, scores) on each bag and writes, per bag, the time of
 every stage, the fit's iterations (the search's wall time, the race of its closest ends through
 the first curriculum stage, the mean wall time of an iteration, split into simulation forward,
-loss and backward) and how many diverged, every estimated parameter against
+loss and backward, and per stage the iterations' summed times and the range of their substeps
+a frame) and how many diverged, every estimated parameter against
 ``ground_truth.yaml`` (log10 ratio for moduli, absolute error for nu, relative error otherwise)
 and the CD, EMD, IoU, PSNR, SSIM and the surface track error on the fitted and the held-out
 frames. A params file with ``loss: {track_weight: 0.0}`` fits without
@@ -73,9 +74,16 @@ def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
     history = fit.get("history", [])
     mean = {f"iteration_{key}": float(np.mean([h[key] for h in history])) if history else None
             for key in ("seconds", "forward_s", "loss_s", "backward_s")}
+    stages = []  # the race's stage, and each stage after it: where an iteration's time goes
+    for stage in sorted({h["stage"] for h in history}):
+        records = [h for h in history if h["stage"] == stage]
+        substeps = [h["substeps"] for h in records if "substeps" in h]
+        stages.append({"stage": stage, "window": records[0]["window"], "iterations": len(records),
+                       **{key: float(sum(h[key] for h in records)) for key in ("seconds", "forward_s", "backward_s")},
+                       "substeps": [min(substeps), max(substeps)] if substeps else None})
     return {"bag": str(bag), "wall_s": time.perf_counter() - start, "timing": report["timing"],
             "fit_iterations": fit.get("iterations"), "fit_failures": fit.get("failures"),
-            "search_s": fit.get("search_s"), "race": fit.get("race"), **mean,
+            "search_s": fit.get("search_s"), "race": fit.get("race"), **mean, "stages": stages,
             "particles": report["particles"],
             "frames": report["frames"], "fitted_frames": report["fitted_frames"],
             "estimates": report["estimates"]["objects"], "scene": report["estimates"]["scene"],

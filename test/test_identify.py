@@ -650,19 +650,25 @@ def test_fit_recovers_the_ground_friction_of_a_cube_sliding_to_a_stop():
 
 
 @pytest.mark.slow
-def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step():
+def test_the_fit_keeps_the_lowest_whole_window_loss_it_saw_not_adams_last_step(caplog):
     # a learning rate large enough for Adam to overshoot: measured losses (x1e-6) 337, 94.5,
     # 42.9, 54.4, 84.1, 98.6
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=8,
                                        **{"search.samples": 0, "curriculum.horizons": [0],
                                           "curriculum.iterations": 6, "curriculum.learning_rate": 0.6})
-    result = Identifier(problem, settings).run()
+    with caplog.at_level(logging.DEBUG, logger="mosiv_ros.sim.simulator"):
+        result = Identifier(problem, settings).run()
     losses = [h["loss"] for h in result.history]
     best = int(np.argmin(losses))
     assert 0 < best < len(losses) - 1  # neither the start nor the last iterate
     assert result.loss == pytest.approx(losses[best], rel=1e-6)
     # an iteration's loss is that of the point the step before it reached
     assert result.values["E"][0] == pytest.approx(result.history[best - 1]["values"]["cube.E"], rel=1e-6)
+    # and its substeps a frame are those its window's rollout took (no search, no anchors: the
+    # first rollouts are the iterations'), which moved with E
+    rolled = [int(n) for n in re.findall(r"rollout: \d+ frames x (\d+) substeps", caplog.text)]
+    substeps = [h["substeps"] for h in result.history]
+    assert substeps == rolled[:len(substeps)] and max(substeps) > min(substeps)
 
 
 @pytest.mark.slow

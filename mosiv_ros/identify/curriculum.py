@@ -162,7 +162,7 @@ class Curriculum:
                 state.adam.last[: len(u)] = moved - u  # the step taken, for an undo
                 state.u, state.velocity = moved, velocity + step[len(u):].reshape(velocity.shape)
                 record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
-                          "loss": loss, "values": fit.values_of(state.u),
+                          "loss": loss, "values": fit.values_of(state.u), "substeps": fit.sim.time_step()[0],
                           "seconds": time.perf_counter() - tick, **fit.timing}
                 state.history.append(record)
                 fit.report({"phase": "fit", "done": before + stage * s.curriculum.iterations + iteration + 1,
