@@ -841,8 +841,6 @@ class Simulator:
         self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
                                     wp.zeros(self.n_batch, dtype=int, device=d))
         self._steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d), wp.empty(0, dtype=int, device=d))
-        self._step = math.nan
-        """The dt in ``_steps`` (``_set_step``)."""
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -1205,11 +1203,9 @@ class Simulator:
 
     def _set_step(self, dt: float) -> None:
         """Every batch row's substep, where the kernels read it (``_OwnSteps``)."""
-        if dt != self._step:
-            self._steps.dt.fill_(dt)
-            self._step = dt
+        self._steps.dt.fill_(dt)
 
-    def _chunks(self, n_sub: int) -> list[tuple[int, int]]:
+    def _runs(self, n_sub: int) -> list[tuple[int, int]]:
         """A frame's substeps as runs (first, count): ``graph_runs`` with CUDA graphs, else the frame."""
         return graph_runs(n_sub) if self._use_graphs else [(0, n_sub)]
 
@@ -1217,7 +1213,7 @@ class Simulator:
         """One frame's substeps from ``states[current]``, ping-ponging between the two states; where it ends."""
         kind = "own" if own else "frame"
         self._launch((kind, "replicate"), self._replicate)
-        for first, size in self._chunks(n_sub):
+        for first, size in self._runs(n_sub):
             at = (current + first) % 2
             self._launch((kind, first, size, at), partial(self._substeps, states, at, grid, first, size, own))
         return (current + n_sub) % 2
@@ -1230,13 +1226,13 @@ class Simulator:
             current = 1 - current
 
     def _record_frame(self, frame: _FrameTape, n_sub: int) -> None:
-        """Compute one frame from ``frame.states[0]`` on tapes: its head's and each run's (``_chunks``).
+        """Compute one frame from ``frame.states[0]`` on tapes: its head's and each run's (``_runs``).
 
         Its gradients are not cleared here: a backward that recomputes the frame clears them
         first (``_zero_frame_grad``), a kept frame's adjoint just before it runs.
         """
         self._launch(("kept", "head", n_sub), partial(self._record_head, frame, n_sub))
-        for first, size in self._chunks(n_sub):
+        for first, size in self._runs(n_sub):
             self._launch(("kept", first, size), partial(self._record_run, frame, first, size))
 
     def _record_head(self, frame: _FrameTape, n_sub: int) -> None:
@@ -1288,7 +1284,7 @@ class Simulator:
         (``kernels.p2g`` says why it may).
         """
         self._launch(("adjoint", "seed", n_sub), partial(self._seed_adjoint, frame, n_sub, adjoint, seed))
-        for run in reversed(self._chunks(n_sub)):
+        for run in reversed(self._runs(n_sub)):
             self._launch(("adjoint", *run), partial(self._tape_adjoint, frame, run, helper))
         self._launch(("adjoint", "head"), partial(self._head_adjoint, frame, adjoint, helper))
 
