@@ -747,10 +747,54 @@ def test_a_search_stopped_after_its_first_round_resumes_there_and_ends_where_an_
     assert not (tmp_path / "ckpt" / SEARCH_FILE).exists()  # the fit's own checkpoint took over
 
 
-def test_a_raced_end_whose_first_stage_diverges_scores_infinite_and_loses():
+def test_raced_ends_in_step_as_the_rows_of_one_batch_fit_as_each_alone_does():
+    # on a GPU the race's ends run as the rows of one rollout, each at its own time step; on
+    # the CPU, where they run one after another, the same to rounding (the rows' parameter
+    # gradients add over other replicas)
+    problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6,
+                                       **{"curriculum.horizons": [3, 0], "curriculum.iterations": 3})
+    runs = {}
+    for together in (False, True):
+        records: list[dict] = []
+        identifier = Identifier(problem, settings, progress=records.append)
+        identifier.search.own_step_batches = together
+        velocity = np.zeros((1, 6))
+        velocity[0, :3] = problem.observations.initial_velocities()
+        ends = [{"E": 2e5, "nu": 0.3}, {"E": 2e4, "nu": 0.3}]
+        states = [FitState(u, velocity.copy(), Adam(np.full(2 + velocity.size, 0.05)), (u.copy(), velocity.copy()))
+                  for u in (np.array([float(e.coordinate.to_u(end[e.name])) for e in identifier.entries])
+                            for end in ends)]
+        won, scores = identifier.curriculum.race(states)
+        runs[together] = (won, scores, states, records)
+    (won, scores, alone, records), (won_, scores_, batched, records_) = runs[False], runs[True]
+    assert won == won_ == 1
+    # the stiff end steps more finely: each row at its own step
+    substeps = [state.history[0]["substeps"] for state in alone]
+    assert [state.history[0]["substeps"] for state in batched] == substeps and substeps[0] > substeps[1]
+    for state, state_ in zip(alone, batched, strict=True):
+        assert (state_.stage, state_.iteration) == (state.stage, state.iteration) == (0, 3)
+        assert all(h["rows"] == 2 for h in state_.history) and not any("rows" in h for h in state.history)
+    # one after another, or in turn within each iteration: the progress counts on by one
+    assert [r["done"] for r in records] == [r["done"] for r in records_] == list(range(1, 7))
+    if DEVICE == "cpu":  # a GPU's float atomics add in no fixed order, and there Adam's first
+        # step along a coordinate whose gradient is rounding noise (the truth's velocities) goes
+        # a whole learning rate either way: the fits are compared on the CPU
+        assert scores_ == pytest.approx(scores, rel=1e-4)
+        for state, state_ in zip(alone, batched, strict=True):
+            assert state_.u == pytest.approx(state.u, rel=1e-4)
+            assert state_.velocity == pytest.approx(state.velocity, abs=1e-6)
+            assert [h["substeps"] for h in state_.history] == [h["substeps"] for h in state.history]
+        assert [r["values"]["cube.E"] for r in records_[:2]] == pytest.approx(
+            [alone[0].history[0]["values"]["cube.E"], alone[1].history[0]["values"]["cube.E"]], rel=1e-4)
+
+
+@pytest.mark.parametrize("together", [False, True])
+def test_a_raced_end_whose_first_stage_diverges_scores_infinite_and_loses(together):
     problem, settings = _jelly_problem({"E": 2e4, "nu": 0.3}, {"E": 5e3, "nu": 0.2}, frames=6,
                                        **{"curriculum.horizons": [3, 0], "curriculum.iterations": 3})
     identifier = Identifier(problem, settings)
+    # in step, the batch diverges at once and each end goes on alone
+    identifier.search.own_step_batches = together
     u, velocity = identifier.pack(), np.zeros((1, 6))
     velocity[0, :3] = problem.observations.initial_velocities()
     diverging = velocity.copy()

@@ -162,13 +162,43 @@ def test_rows_at_their_own_time_steps_move_as_each_alone_at_its_own(stiff):
         assert _equal(moved[:, b], sim.rollout(4)[:, 0]), b
     # at the stiffest row's step the soft rows move otherwise (what own steps are for)
     assert not np.allclose(together.rollout(4)[:, 0], moved[:, 0], rtol=0, atol=1e-6)
-    with pytest.raises(ValueError, match="own_steps=True takes neither grad nor substeps"):
-        together.rollout(2, own_steps=True, grad=True)
+    with pytest.raises(ValueError, match="own_steps=True takes no substeps"):
+        together.rollout(2, own_steps=True, substeps=int(substeps.max()))
     finger = Collider("sphere", (0.03,), np.array([0.0, 1.0]), np.array([[0.45, 0.2, 0.3]] * 2))
     gripped = _two_balls(n_batch=2, colliders=[finger])
     assert not gripped.own_steps_allowed
     with pytest.raises(ParameterError, match="own time steps need a scene without colliders"):
         gripped.rollout(2, own_steps=True)
+
+
+def test_rows_at_their_own_time_steps_have_the_gradients_each_alone_has():
+    """``backward`` after ``rollout(own_steps=True, grad=True)``: each row's, as if it ran alone."""
+    values = [(3e4, 5e4), (4e5, 5e4), (1e4, 2e5)]
+    together = _two_balls(n_batch=3)
+    together.params.set("E", [list(v) for v in values])
+    together.params.set("nu", [[0.2, 0.3], [0.35, 0.25], [0.3, 0.2]])
+    assert len(set(together.own_time_steps()[0].tolist())) == 3
+    frames, n = 4, together.n_particles
+    dL = np.random.default_rng(5).normal(size=(frames + 1, 3, n, 3)) * 1e-2
+    moved = together.rollout(frames, grad=True, own_steps=True)
+    rows = together.backward(dL)
+    for b, (ball, block) in enumerate(values):
+        sim = _two_balls()
+        sim.params.set("E", [[ball, block]])
+        sim.params.set("nu", together.params.get("nu")[b:b + 1])
+        assert _equal(moved[:, b], sim.rollout(frames, grad=True)[:, 0]), b
+        alone = sim.backward(dL[:, b:b + 1])
+        # to rounding: a row's particles add their parameters' gradients on other replicas
+        # (``params``) than alone, in another order
+        for name, grad in alone.params.items():
+            assert np.allclose(rows.params[name][b], grad[0], rtol=1e-4, atol=2e-5 * np.abs(grad).max()), (b, name)
+        for got, expected in ((rows.v0[b], alone.v0[0]), (rows.volume[b], alone.volume[0])):
+            assert np.allclose(got, expected, rtol=1e-4, atol=2e-5 * np.abs(expected).max()), b
+    assert np.abs(rows.params["E"][0]).max() > 0 and np.abs(rows.params["nu"][2]).max() > 0
+    # at the stiffest row's step the soft rows' gradients are others (what own steps are for)
+    together.rollout(frames, grad=True)
+    common = together.backward(dL)
+    assert not np.allclose(common.params["E"][0], rows.params["E"][0], rtol=1e-3, atol=0)
 
 
 def test_batched_gradients_equal_one_backward_per_parameter_set():
@@ -299,7 +329,7 @@ def test_grid_passes_run_over_a_box_holding_every_node_the_particles_reach():
         grid = _Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False)
         sim._replicate()
         sim._collider_poses(0, n_sub, dt)
-        sim._set_step(dt)
+        sim._set_steps(dt, n_sub)
         sim._substep(src, dst, grid, 0)
         box_lo, box_dims = sim._active_box(src)
         ijk = np.stack(np.unravel_index(np.arange(sim.n_nodes), sim.dims), axis=1)
@@ -456,7 +486,7 @@ def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds()
     grids = [_Grid(2, 2, sim.dims, 2 * sim.n_particles, False, sim.device, False) for _ in range(2)]
     sim._replicate()
     sim._collider_poses(0, n_sub, dt)
-    sim._set_step(dt)
+    sim._set_steps(dt, n_sub)
     for grid, starts in zip(grids, ([x], [elsewhere, x]), strict=True):
         for positions in starts:
             src, dst = (_State(2 * sim.n_particles, sim.device, False) for _ in range(2))

@@ -16,7 +16,8 @@ or where an interrupted fit stopped) through the curriculum stages ``settings.cu
   and the learning rate halved (``retreat``);
 - every whole-window iteration's loss is compared: ``FitState.best`` keeps the lowest;
 - ``race(states)`` runs the first stage from each of several points (the search's ends whose
-  losses lie too close to rank them) and names the one that fits best there, to go on.
+  losses lie too close to rank them) and names the one that fits best there, to go on; on a
+  GPU the points run in step, as the rows of one batched rollout each at its own time step.
 
 ``saved(state)`` is called after every iteration (the checkpoint). The identifier
 (``identify.fit.Identifier``) supplies the problem, the settings and the loss of a window.
@@ -36,7 +37,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from mosiv_ros.sim import SimState
+from mosiv_ros.sim import SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged
 
 if TYPE_CHECKING:
@@ -125,51 +126,89 @@ class Curriculum:
         ``saved(state)`` after every iteration. The progress records count ``before`` iterations
         ahead of this state's own, and ``raced`` more in the total: the race's (``race``).
         """
+        return self._run([state], saved, until, before, raced)[0]
+
+    def _run(self, states: list[FitState], saved: Callable[[FitState], None], until: int | None,
+             before: int, raced: int) -> list[FitState]:
+        """``run`` of several states in step, all at one stage and iteration (``race``).
+
+        One state runs on the identifier's simulator. Several run as the rows of one batched
+        rollout, each at its own time step, and get what each would alone (``Simulator.rollout``
+        with ``own_steps``); their iterations are counted in turn in the progress. Should a
+        batched rollout diverge, the rows cannot tell whose step to undo: each state then goes
+        on alone from where they all are.
+        """
         fit, s = self.identifier, self.identifier.settings
         n = fit.problem.observations.n_frames - 1
-        moving = np.linalg.norm(state.velocity[:, :3], axis=1) > 0
+        together = len(states) > 1
+        moving = [np.linalg.norm(state.velocity[:, :3], axis=1) > 0 for state in states]
         stages = self.stages()
-        stage0, iteration0 = state.stage, state.iteration
+        stage0, iteration0 = states[0].stage, states[0].iteration
         for stage in range(stage0, len(stages) if until is None else min(until, len(stages))):
             length = stages[stage]
             starts = window_starts(n, length, s.curriculum.windows)
             anchor: dict[int, SimState] = {}
             for iteration in range(iteration0 if stage == stage0 else 0, s.curriculum.iterations):
                 tick = time.perf_counter()
-                u, velocity = state.u, state.velocity
-                fit.apply(u, velocity)
+                points = [(state.u, state.velocity) for state in states]
+                if together:
+                    sim, inside = fit.rows(points)
+                else:
+                    fit.apply(*points[0])
+                    sim = fit.sim
                 start = starts[iteration % len(starts)]
                 try:
                     if start > 0 and (start not in anchor or iteration % s.resync_every == 0):
                         anchor = {}  # a diverging anchor rollout leaves none to reuse
-                        anchor = self.anchor(starts)
+                        anchor = self.anchor(starts, sim, own_steps=together)
                     initial = self.resynced(anchor, start) if start > 0 else None
-                    loss, du, dv, per = fit.window_loss(start, length, initial, grad=True)
+                    if together:
+                        u = np.stack([u for u, _ in points])
+                        results = fit.window_losses(sim, u, fit.offsets_of(u), inside, start, length, initial,
+                                                    grad=True, own_steps=True)
+                    else:
+                        results = [fit.window_loss(start, length, initial, grad=True)]
                 except SimulationDiverged as error:
+                    if together:
+                        _LOG.warning("a batched iteration diverged (%s); the %d states go on one after another",
+                                     error, len(states))
+                        # counted on from the iterations done in step, the states' rest one after another
+                        done, left = before + iteration * len(states), s.curriculum.iterations - iteration
+                        return [self._run([state], saved, until, done + r * left - iteration, raced)[0]
+                                for r, state in enumerate(states)]
+                    state = states[0]
                     state.failures += 1
                     state.adam.lr *= 0.5
                     state.u, state.velocity, back = self.retreat(state)
                     _LOG.warning("iteration %d diverged (%s); %s, learning rates halved",
                                  iteration, error, back)
                     continue
-                if start == 0 and length == n and loss < state.best[0]:
-                    state.best = (loss, u.copy(), velocity.copy(), per.copy())
-                if not s.fit_velocity:
-                    dv[:] = 0.0
-                dv[~moving] = 0.0  # an object found at rest stays at rest at t = 0
-                step = state.adam.step(np.concatenate([du, dv.ravel()]))
-                moved = fit.project(u + step[: len(u)])
-                state.adam.last[: len(u)] = moved - u  # the step taken, for an undo
-                state.u, state.velocity = moved, velocity + step[len(u):].reshape(velocity.shape)
-                record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
-                          "loss": loss, "values": fit.values_of(state.u), "substeps": fit.sim.time_step()[0],
-                          "seconds": time.perf_counter() - tick, **fit.timing}
-                state.history.append(record)
-                fit.report({"phase": "fit", "done": before + stage * s.curriculum.iterations + iteration + 1,
-                            "total": raced + len(stages) * s.curriculum.iterations, **record})
-                state.stage, state.iteration = stage, iteration + 1
-                saved(state)
-        return state
+                substeps = sim.own_time_steps()[0] if together else [sim.time_step()[0]]
+                share = {"seconds": time.perf_counter() - tick, **fit.timing}
+                share = {key: value / len(states) for key, value in share.items()}
+                for r, (state, (loss, du, dv, per)) in enumerate(zip(states, results, strict=True)):
+                    u, velocity = state.u, state.velocity
+                    if start == 0 and length == n and loss < state.best[0]:
+                        state.best = (loss, u.copy(), velocity.copy(), per.copy())
+                    if not s.fit_velocity:
+                        dv[:] = 0.0
+                    dv[~moving[r]] = 0.0  # an object found at rest stays at rest at t = 0
+                    step = state.adam.step(np.concatenate([du, dv.ravel()]))
+                    moved = fit.project(u + step[: len(u)])
+                    state.adam.last[: len(u)] = moved - u  # the step taken, for an undo
+                    state.u, state.velocity = moved, velocity + step[len(u):].reshape(velocity.shape)
+                    record = {"stage": stage, "window": length, "start": start, "iteration": iteration,
+                              "loss": loss, "values": fit.values_of(state.u), "substeps": int(substeps[r]),
+                              **share}
+                    if together:
+                        record["rows"] = len(states)
+                    state.history.append(record)
+                    done = before + (stage * s.curriculum.iterations + iteration) * len(states) + r + 1
+                    fit.report({"phase": "fit", "done": done,
+                                "total": raced + len(stages) * s.curriculum.iterations, **record})
+                    state.stage, state.iteration = stage, iteration + 1
+                    saved(state)
+        return states
 
     def race(self, states: list[FitState]) -> tuple[int, list[float]]:
         """The first stage from each of ``states`` (the search's closest ends); which goes on, and the scores.
@@ -177,16 +216,23 @@ class Curriculum:
         A state's score is its mean loss over the stage's last pass over its windows: the same
         windows for every state, an iteration's loss that of the point the step before reached;
         infinite if an iteration of that pass diverged. The lowest goes on; the states are left
-        at the stage's end. The progress records count every state's iterations, and the
-        curriculum's after them (``run``'s ``raced``: ``raced(len(states))``).
+        at the stage's end. Where the search batches rows at their own time steps (on a GPU,
+        ``GlobalSearch.own_step_batches``) and the scene allows it, the states run in step as
+        the rows of one rollout, which costs about what the stiffest alone does; else one after
+        another. The progress records count every state's iterations, and the curriculum's
+        after them (``run``'s ``raced``: ``raced(len(states))``).
         """
         fit, s = self.identifier, self.identifier.settings
         iterations = s.curriculum.iterations
         n = fit.problem.observations.n_frames - 1
         last_pass = min(iterations, len(window_starts(n, self.stages()[0], s.curriculum.windows)))
+        if fit.search.own_step_batches and fit.sim.own_steps_allowed:
+            self._run(states, lambda _: None, 1, 0, self.raced(len(states)))
+        else:
+            for r, state in enumerate(states):
+                self.run(state, lambda _: None, until=1, before=r * iterations, raced=self.raced(len(states)))
         scores = []
-        for r, state in enumerate(states):
-            self.run(state, lambda _: None, until=1, before=r * iterations, raced=self.raced(len(states)))
+        for state in states:
             losses = [h["loss"] for h in state.history if h["iteration"] >= iterations - last_pass]
             scores.append(float(np.mean(losses)) if len(losses) == last_pass else math.inf)
         return int(np.argmin(scores)), scores
@@ -213,28 +259,33 @@ class Curriculum:
         return u, velocity, "nothing to undo"
 
     def resynced(self, anchor: dict[int, SimState], start: int) -> SimState:
-        """The anchor state at ``start`` with each object's centroid moved onto the observed one."""
+        """The anchor state at ``start`` with each object's centroid moved onto the observed one (in every row)."""
         fit = self.identifier
         state = anchor[start]
         x, v = state.x.copy(), state.v.copy()
         c_obs = fit.observed_centroids
         dt = fit.problem.observations.frame_dt
-        for k in range(fit.problem.observations.n_objects):
-            mine = fit.index == k
-            if np.isnan(c_obs[start, k, 0]):
-                continue
-            x[0, mine] += c_obs[start, k] - x[0, mine].mean(axis=0)
-            # central difference: a forward one lags by half a frame of acceleration
-            before, after = c_obs[start - 1, k], c_obs[min(start + 1, len(c_obs) - 1), k]
-            if start + 1 < len(c_obs) and not (np.isnan(before[0]) or np.isnan(after[0])):
-                v[0, mine] += (after - before) / (2 * dt) - v[0, mine].mean(axis=0)
+        for row in range(len(x)):
+            for k in range(fit.problem.observations.n_objects):
+                mine = fit.index == k
+                if np.isnan(c_obs[start, k, 0]):
+                    continue
+                x[row, mine] += c_obs[start, k] - x[row, mine].mean(axis=0)
+                # central difference: a forward one lags by half a frame of acceleration
+                before, after = c_obs[start - 1, k], c_obs[min(start + 1, len(c_obs) - 1), k]
+                if start + 1 < len(c_obs) and not (np.isnan(before[0]) or np.isnan(after[0])):
+                    v[row, mine] += (after - before) / (2 * dt) - v[row, mine].mean(axis=0)
         return SimState(x, v, state.C, state.b)
 
-    def anchor(self, starts: list[int]) -> dict[int, SimState]:
-        """The simulator's states at ``starts`` > 0, from one rollout with the current parameters."""
+    def anchor(self, starts: list[int], sim: Simulator | None = None,
+               own_steps: bool = False) -> dict[int, SimState]:
+        """``sim``'s states (the identifier's by default) at ``starts`` > 0, from one rollout with its parameters.
+
+        ``own_steps``: each row at its own time step, as the windows from them run.
+        """
         last = max(starts)
         if last == 0:
             return {}
-        sim = self.identifier.sim
-        sim.rollout(last, grad=True)
+        sim = sim or self.identifier.sim
+        sim.rollout(last, grad=True, own_steps=own_steps)
         return {s: sim.frame_state(s) for s in starts if s > 0}

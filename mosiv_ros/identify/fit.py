@@ -338,57 +338,99 @@ class Identifier:
         if boundary is not None:
             self.sim.set_volume(boundary.volumes(self.offsets[self.index]))
             self.inside = boundary.inside(self.offsets[self.index])
+        self.sim.set_initial_velocity(self.particle_velocity(velocity))
+
+    def particle_velocity(self, velocity: np.ndarray) -> np.ndarray:
+        """Each particle's initial velocity (N, 3) from each object's (K, 6) about its centroid."""
         linear, angular = velocity[self.index, :3], velocity[self.index, 3:]
-        self.sim.set_initial_velocity(linear + np.cross(angular, self.problem.particles.x
-                                                        - self.centre0[self.index]))
+        return linear + np.cross(angular, self.problem.particles.x - self.centre0[self.index])
+
+    def offsets_of(self, points: np.ndarray) -> np.ndarray:
+        """The boundary offsets (R, K) of coordinate rows ``points`` (R, P); ``offsets`` where no entry sets them."""
+        offsets = np.repeat(self.offsets[None], len(points), axis=0)
+        for i, entry in enumerate(self.entries):
+            if entry.name == OFFSET:
+                offsets[:, entry.index[1]] = entry.coordinate.to_theta(points[:, i])
+        return offsets
+
+    def rows(self, points: list[tuple[np.ndarray, np.ndarray]]) -> tuple[Simulator, np.ndarray]:
+        """A batched simulator set to ``points`` (u, velocity), a row each; (R, N) which particles are inside.
+
+        The search's kept simulator of that many rows (``GlobalSearch.simulator``); what no entry
+        sets comes from ``sim``, as ``apply`` leaves it for the first point.
+        """
+        self.apply(*points[0])
+        batch = self.search.simulator(len(points))
+        inside = self.search.configure(batch, np.stack([u for u, _ in points]))
+        batch.set_initial_velocity(np.stack([self.particle_velocity(velocity) for _, velocity in points]))
+        return batch, inside
 
     # --- one window --------------------------------------------------------------------------
 
     def window_loss(self, start: int, length: int, initial: SimState | None,
                      grad: bool) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Loss over frames start+1..start+length, dL/du, dL/dvelocity (K, 6), per-object losses."""
+        return self.window_losses(self.sim, self.pack()[None], self.offsets[None], self.inside[None],
+                                  start, length, initial, grad)[0]
+
+    def window_losses(self, sim: Simulator, points: np.ndarray, offsets: np.ndarray, inside: np.ndarray,
+                      start: int, length: int, initial: SimState | None, grad: bool,
+                      own_steps: bool = False) -> list[tuple[float, np.ndarray, np.ndarray, np.ndarray]]:
+        """``window_loss`` of each row of ``sim``, set to coordinates ``points`` (R, P).
+
+        ``offsets`` (R, K) its rows' boundary offsets, ``inside`` (R, N) their particles inside
+        the surface; ``own_steps``: each row at its own time step (``Simulator.rollout``). The
+        rows' losses are independent, so one backward gives each its own gradients.
+        """
         obs = self.problem.observations
         tick = time.perf_counter()
-        traj = self.sim.rollout(length, grad=grad, initial=initial, start_frame=start)
+        traj = sim.rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
         self.timing = {"forward_s": time.perf_counter() - tick}
         tick = time.perf_counter()
-        total, dL, per = self._loss_of(traj, start, self.inside, grad)
+        totals, dL, pers = self._loss_of(traj, start, inside, grad)
         self.timing["loss_s"] = time.perf_counter() - tick
         if not grad:
-            return total, np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per
+            return [(float(total), np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per)
+                    for total, per in zip(totals, pers, strict=True)]
         tick = time.perf_counter()
-        grads = self.sim.backward(dL)
+        grads = sim.backward(dL)
         self.timing["backward_s"] = time.perf_counter() - tick
-        u = self.pack()
         boundary = self.problem.boundary
-        if boundary is not None:
-            dL_do = grads.volume[0] * boundary.dvolume_doffset(self.offsets[self.index])
-            offset_grads = np.bincount(self.index, dL_do, minlength=obs.n_objects)
-        du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET else grads.params[e.name][e.index])
-                       * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
-        dv = np.zeros((obs.n_objects, 6))
-        if initial is None:  # velocities are parameters only of windows from frame 0
-            g0 = grads.v0[0]
-            r = self.problem.particles.x - self.centre0[self.index]
-            for k in range(obs.n_objects):
-                mine = self.index == k
-                dv[k, :3] = g0[mine].sum(axis=0)
-                dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
-        return total, du, dv, per
+        results = []
+        for row, (u, total, per) in enumerate(zip(points, totals, pers, strict=True)):
+            if boundary is not None:
+                dL_do = grads.volume[row] * boundary.dvolume_doffset(offsets[row][self.index])
+                offset_grads = np.bincount(self.index, dL_do, minlength=obs.n_objects)
+            du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET
+                            else grads.params[e.name][(row, *e.index[1:])])
+                           * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
+            dv = np.zeros((obs.n_objects, 6))
+            if initial is None:  # velocities are parameters only of windows from frame 0
+                g0 = grads.v0[row]
+                r = self.problem.particles.x - self.centre0[self.index]
+                for k in range(obs.n_objects):
+                    mine = self.index == k
+                    dv[k, :3] = g0[mine].sum(axis=0)
+                    dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
+            results.append((float(total), du, dv, per))
+        return results
 
     def _loss_of(self, traj: np.ndarray, start: int, inside: np.ndarray,
-                 grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        """The loss of rollout ``traj`` (frames ``start``.. on), dL/dx like ``traj``, per-object losses.
+                 grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each row's loss of rollout ``traj`` (frames ``start``.. on): (R,), dL/dx like ``traj``, per object (R, K).
 
-        ``inside``: which particles are inside the surface (``self.inside`` for ``sim``'s).
+        ``inside`` (R, N): which particles of each row are inside the surface (``self.inside``
+        for ``sim``'s).
         """
         if self.tensor_device is not None:
             return self._tensor_loss(traj, start, inside, grad)
-        return self._frame_losses(traj, start, inside)
+        rows = [self._frame_losses(traj[:, r:r + 1], start, inside[r]) for r in range(traj.shape[1])]
+        return (np.array([total for total, _, _ in rows]), np.concatenate([dL for _, dL, _ in rows], axis=1),
+                np.stack([per for *_, per in rows]))
 
     def _frame_losses(self, traj: np.ndarray, start: int,
                       inside: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        """``_loss_of`` on the CPU, frame by frame.
+        """``_loss_of`` of one row on the CPU, frame by frame.
 
         Chamfer by KD-tree, the silhouettes in batches of frames, the tracks.
         """
@@ -420,23 +462,24 @@ class Identifier:
         return total / length, dL / length, per / length
 
     def _tensor_loss(self, traj: np.ndarray, start: int, inside: np.ndarray,
-                     grad: bool) -> tuple[float, np.ndarray, np.ndarray]:
-        """``_frame_losses`` as tensors on ``tensor_device``, dL/dx by autograd (zeros without ``grad``)."""
+                     grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_loss_of``, every row at once, as tensors on ``tensor_device``; dL/dx by autograd (or zeros)."""
         obs, loss, device = self.problem.observations, self.settings.loss, self.tensor_device
         length = len(traj) - 1
         dL = np.zeros(traj.shape, dtype=np.float64)
         with torch_threads(device), torch.set_grad_enabled(grad):
-            x = torch.tensor(traj[None, 1:, 0], dtype=torch.float64, device=device, requires_grad=grad)
-            terms = tensor_terms(x, torch.as_tensor(inside[None], device=device), self.index,
+            x = torch.tensor(traj[1:].transpose(1, 0, 2, 3), dtype=torch.float64, device=device,
+                             requires_grad=grad)
+            terms = tensor_terms(x, torch.as_tensor(inside, device=device), self.index,
                                  obs.tensors(device), obs.object_ids, slice(start + 1, start + length + 1),
                                  loss, self.splat_radius)
-            total = (loss.chamfer_weight * terms.chamfer_total.sum() + loss.silhouette_weight
-                     * terms.silhouette.sum() + loss.track_weight * terms.track.sum()) / length
+            total = (loss.chamfer_weight * terms.chamfer_total.sum(dim=1) + loss.silhouette_weight
+                     * terms.silhouette.sum(dim=1) + loss.track_weight * terms.track.sum(dim=(1, 2))) / length
             per = (terms.chamfer.nan_to_num().sum(dim=1) + loss.track_weight * terms.track.sum(dim=1)) / length
             if grad:
-                total.backward()
-                dL[1:, 0] = x.grad[0].cpu().numpy()
-        return float(total.detach()), dL, per[0].detach().cpu().numpy()
+                total.sum().backward()
+                dL[1:] = x.grad.transpose(0, 1).cpu().numpy()
+        return total.detach().cpu().numpy(), dL, per.detach().cpu().numpy()
 
     # --- the fit -----------------------------------------------------------------------------
 
@@ -556,8 +599,8 @@ class Identifier:
                 traj = sim.rollout(n)
             except SimulationDiverged as error:
                 return error
-            total, _, per = self._loss_of(traj, 0, inside, grad=False)
-            return total, per
+            total, _, per = self._loss_of(traj, 0, inside[None], grad=False)
+            return float(total[0]), per[0]
 
         if not cpu:  # one point after the other on ``sim``
             results = []

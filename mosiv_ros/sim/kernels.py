@@ -13,8 +13,9 @@ Kernel parameters are named for where the simulator finds their values (``simula
 ``src_x``, ``dst_b``, ... a field of a particle state, ``grid_m``, ... of the substep's grid,
 ``collider_pos``, ... of the colliders, ``E``, ``ground_height``, ... a parameter's replicas,
 and sizes and geometry (``n_particles``, ``dims``, ``lo``, ``dx``, ...) by name. Each batch
-row's substep is read from ``own_dt``, never passed as a value, so that a captured CUDA graph
-of some substeps serves every time step (``simulator.graph_runs``).
+row's substep and its substeps a frame are read from ``own_dt`` and ``own_substeps``, never
+passed as values, so that a captured CUDA graph of some substeps serves every time step, and
+rows at their own time steps alike (``simulator.graph_runs``).
 docs/simulator.md maps the substep onto the method.
 
 **Contact between objects** (multi-velocity-field MPM, Bardenhagen et al. 2001, "An improved
@@ -135,11 +136,8 @@ def bspline_weights(fx: float):
 
 @wp.func
 def own_turn(own_substeps: wp.array(dtype=int), batch: int, substep: int):
-    """Whether row ``batch`` takes substep ``substep`` of the frame (every row does, without own steps)."""
-    taken = True
-    if own_substeps.shape[0] > 0:
-        taken = substep < own_substeps[batch]
-    return taken
+    """Whether row ``batch`` takes substep ``substep`` of the frame (every row does at one time step)."""
+    return substep < own_substeps[batch]
 
 
 @wp.kernel

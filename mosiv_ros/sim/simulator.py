@@ -579,11 +579,11 @@ class _Colliders:
 
 @dataclass(frozen=True)
 class _OwnSteps:
-    """Each batch row's substep (``dt``) and, where rows take their own steps, substeps per frame.
+    """Each batch row's substep (``dt``) and substeps per frame (``substeps``).
 
-    The kernels read them as ``own_<name>``. A rollout at one time step gives every row its
-    ``dt`` and no ``substeps`` (every row takes every substep); ``rollout(own_steps=True)``
-    gives each row its own of both.
+    The kernels read them as ``own_<name>``. A rollout at one time step gives every row the
+    same of both; ``rollout(own_steps=True)`` gives each row its own (a row past its own
+    substeps keeps its state until the frame's last).
     """
 
     dt: wp.array
@@ -838,9 +838,8 @@ class Simulator:
         self._adjoint_commands: dict[tuple, tuple] = {}
         self._written_commands: dict[tuple, _Command] = {}
         self._labels: dict[wp.Kernel, dict[str, int]] = {}
-        self._own_steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
-                                    wp.zeros(self.n_batch, dtype=int, device=d))
-        self._steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d), wp.empty(0, dtype=int, device=d))
+        self._steps = _OwnSteps(wp.zeros(self.n_batch, dtype=float, device=d),
+                                wp.zeros(self.n_batch, dtype=int, device=d))
 
     # --- set-up and checks ----------------------------------------------------------------
 
@@ -1142,14 +1141,14 @@ class Simulator:
             tape.record_launch(kernel, dim, 0, list(recorded.args), [], self.device)
 
     def _substep(self, src: _State, dst: _State, grid: _Grid, row: int,
-                 colliders: _Colliders | None = None, own: bool = False, cleared: bool = False) -> None:
+                 colliders: _Colliders | None = None, cleared: bool = False) -> None:
         """One MLS-MPM substep from ``src`` to ``dst`` (docs/simulator.md maps it to the method).
 
         ``row`` is the substep's index in its frame (which of the poses of ``colliders``, by
-        default the rollouts', apply). The step is ``_set_step``'s, or with ``own`` each batch
-        row's own (``rollout``). ``cleared``: ``grid`` is zero already (``_record_frame``).
+        default the rollouts', apply). Each batch row's step is ``_set_steps``'. ``cleared``:
+        ``grid`` is zero already (``_record_frame``).
         """
-        steps = {"own": self._own_steps if own else self._steps}
+        steps = {"own": self._steps}
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
         if cleared:
@@ -1201,28 +1200,36 @@ class Simulator:
             box_dims.append(min(base[1] + 3, top + 2) - box_lo[-1] + 1)  # the stencil's last node, plus one
         return tuple(box_lo), tuple(box_dims)
 
-    def _set_step(self, dt: float) -> None:
-        """Every batch row's substep, where the kernels read it (``_OwnSteps``)."""
-        self._steps.dt.fill_(dt)
+    def _set_steps(self, dt: float | np.ndarray, substeps: int | np.ndarray) -> None:
+        """Every batch row's substep and substeps a frame, where the kernels read them (``_OwnSteps``).
+
+        One value for every row (a rollout at one time step), or an array of one per row.
+        """
+        if np.ndim(dt):
+            self._steps.dt.assign(np.asarray(dt, dtype=np.float32))
+        else:
+            self._steps.dt.fill_(dt)
+        if np.ndim(substeps):
+            self._steps.substeps.assign(np.asarray(substeps, dtype=np.int32))
+        else:
+            self._steps.substeps.fill_(int(substeps))
 
     def _runs(self, n_sub: int) -> list[tuple[int, int]]:
         """A frame's substeps as runs (first, count): ``graph_runs`` with CUDA graphs, else the frame."""
         return graph_runs(n_sub) if self._use_graphs else [(0, n_sub)]
 
-    def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int, own: bool = False) -> int:
+    def _frame(self, states: list[_State], current: int, grid: _Grid, n_sub: int) -> int:
         """One frame's substeps from ``states[current]``, ping-ponging between the two states; where it ends."""
-        kind = "own" if own else "frame"
-        self._launch((kind, "replicate"), self._replicate)
+        self._launch(("frame", "replicate"), self._replicate)
         for first, size in self._runs(n_sub):
             at = (current + first) % 2
-            self._launch((kind, first, size, at), partial(self._substeps, states, at, grid, first, size, own))
+            self._launch(("frame", first, size, at), partial(self._substeps, states, at, grid, first, size))
         return (current + n_sub) % 2
 
-    def _substeps(self, states: list[_State], current: int, grid: _Grid, first: int, size: int,
-                  own: bool) -> None:
+    def _substeps(self, states: list[_State], current: int, grid: _Grid, first: int, size: int) -> None:
         """Substeps ``first`` to ``first + size - 1`` of a frame from ``states[current]`` (``_frame``)."""
         for s in range(first, first + size):
-            self._substep(states[current], states[1 - current], grid, s, own=own)
+            self._substep(states[current], states[1 - current], grid, s)
             current = 1 - current
 
     def _record_frame(self, frame: _FrameTape, n_sub: int) -> None:
@@ -1535,23 +1542,23 @@ class Simulator:
         of every row at the stiffest one's: a row's frame is its own substeps, after which it
         waits for the others (its kernels copy its state). Each row moves as a simulator of it
         alone would (on the CPU to the bit), in the time the stiffest row takes, with the work of
-        the rows that are still stepping. Not with ``grad`` or ``substeps``, and only where
+        the rows that are still stepping; with ``grad``, ``backward`` gives each row the
+        gradients that row alone would have. Not with ``substeps``, and only where
         ``own_steps_allowed``.
         """
         self.params.validate()
         if own_steps:
-            if grad or substeps is not None:
-                raise ValueError("own_steps=True takes neither grad nor substeps")
+            if substeps is not None:
+                raise ValueError("own_steps=True takes no substeps")
             if not self.own_steps_allowed:
                 raise ParameterError("rows at their own time steps need a scene without colliders and "
                                      "without effects that add stresses or grid accelerations")
-            row_substeps, row_dt = self.own_time_steps()
-            self._own_steps.dt.assign(row_dt.astype(np.float32))
-            self._own_steps.substeps.assign(row_substeps.astype(np.int32))
-            n_sub, dt = int(row_substeps.max()), row_dt
+            row_substeps, dt = self.own_time_steps()
+            n_sub = int(row_substeps.max())
         else:
             n_sub, dt = self.time_step(substeps)
-            self._set_step(dt)
+            row_substeps = n_sub
+        self._set_steps(dt, row_substeps)
         B, N = self.n_batch, self.n_particles
         self._record = None  # a rollout that stops diverging leaves none (kept frames are rewritten)
         if self._buffers is None:
@@ -1587,9 +1594,9 @@ class Simulator:
                 if frame == 0:
                     checkpoints.append(start)
             else:
-                if not own_steps:  # each row's own dt and substeps are read from the device
+                if not own_steps:  # rows at their own steps have no colliders
                     self._collider_poses(start_frame + frame, n_sub, dt)
-                current = self._frame(states, current, grid, n_sub, own_steps)
+                current = self._frame(states, current, grid, n_sub)
                 state = states[current]
             if check:
                 frame_stats = stats[frame * row:(frame + 1) * row]
@@ -1606,7 +1613,7 @@ class Simulator:
             for frame, frame_stats in enumerate(stats.numpy().reshape(n_frames, row)):
                 self._diverged(frame_stats, start_frame + frame + 1, dt)
         out = self._staging.collect().reshape(n_frames + 1, B, N, 3)
-        self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt,
+        self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt, "substeps": row_substeps,
                          "start_frame": start_frame, "kept": kept} if grad else None)
         self._final = state
         _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
@@ -1620,15 +1627,15 @@ class Simulator:
         """
         if self._record is None:
             raise RuntimeError("backward() needs a preceding rollout(..., grad=True)")
-        checkpoints, n_sub, dt, start = (self._record[k]
-                                         for k in ("checkpoints", "n_sub", "dt", "start_frame"))
+        checkpoints, n_sub, dt, substeps, start = (
+            self._record[k] for k in ("checkpoints", "n_sub", "dt", "substeps", "start_frame"))
         n_frames = len(checkpoints) - 1
         B, N = self.n_batch, self.n_particles
         dL_dx = np.asarray(dL_dx, dtype=np.float32)
         if dL_dx.shape != (n_frames + 1, B, N, 3):
             raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
         adjoint, seed = self._adjoint_state()
-        self._set_step(dt)
+        self._set_steps(dt, substeps)
         self.params.zero_grad()
         self.volume.grad.zero_()
         for array in adjoint.arrays:
