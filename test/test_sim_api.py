@@ -11,10 +11,12 @@ from sim_scenes import DEVICE, falling_ball, scene
 
 from mosiv_ros.identify.losses import chamfer
 from mosiv_ros.sim import (
+    BodyForce,
     Collider,
     Effect,
     Gravity,
     Ground,
+    KelvinVoigtDamping,
     LinearDrag,
     ObjectModel,
     ParameterError,
@@ -171,21 +173,33 @@ def test_rows_at_their_own_time_steps_move_as_each_alone_at_its_own(stiff):
         gripped.rollout(2, own_steps=True)
 
 
-def test_rows_at_their_own_time_steps_have_the_gradients_each_alone_has():
-    """``backward`` after ``rollout(own_steps=True, grad=True)``: each row's, as if it ran alone."""
+def _effects() -> list[Effect]:
+    return [Gravity(), BodyForce(a=(0.5, 0.0, 0.0)), LinearDrag(), KelvinVoigtDamping()]
+
+
+@pytest.mark.parametrize("effects", [None, _effects], ids=["no effects", "effects"])
+def test_rows_at_their_own_time_steps_have_the_gradients_each_alone_has(effects):
+    """``backward`` after ``rollout(own_steps=True, grad=True)``: each row's, as if it ran alone.
+
+    With effects too: grid accelerations (a wind, a drag) and a stress (damping) per row.
+    """
     values = [(3e4, 5e4), (4e5, 5e4), (1e4, 2e5)]
-    together = _two_balls(n_batch=3)
+    together = _two_balls(n_batch=3, effects=effects and effects())
     together.params.set("E", [list(v) for v in values])
     together.params.set("nu", [[0.2, 0.3], [0.35, 0.25], [0.3, 0.2]])
+    if effects:
+        together.params.set("wind.a", [[0.5, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.5]])
+        together.params.set("linear_drag.coefficient", [[1.0, 3.0], [2.0, 0.5], [0.0, 1.5]])
+        together.params.set("damping.viscosity", [[0.5, 0.1], [0.0, 0.3], [0.2, 0.2]])
     assert len(set(together.own_time_steps()[0].tolist())) == 3
     frames, n = 4, together.n_particles
     dL = np.random.default_rng(5).normal(size=(frames + 1, 3, n, 3)) * 1e-2
     moved = together.rollout(frames, grad=True, own_steps=True)
     rows = together.backward(dL)
-    for b, (ball, block) in enumerate(values):
-        sim = _two_balls()
-        sim.params.set("E", [[ball, block]])
-        sim.params.set("nu", together.params.get("nu")[b:b + 1])
+    for b in range(len(values)):
+        sim = _two_balls(effects=effects and effects())
+        for name in together.params.specs:
+            sim.params.set(name, together.params.get(name)[b:b + 1])
         assert _equal(moved[:, b], sim.rollout(frames, grad=True)[:, 0]), b
         alone = sim.backward(dL[:, b:b + 1])
         # to rounding: a row's particles add their parameters' gradients on other replicas
@@ -195,6 +209,9 @@ def test_rows_at_their_own_time_steps_have_the_gradients_each_alone_has():
         for got, expected in ((rows.v0[b], alone.v0[0]), (rows.volume[b], alone.volume[0])):
             assert np.allclose(got, expected, rtol=1e-4, atol=2e-5 * np.abs(expected).max()), b
     assert np.abs(rows.params["E"][0]).max() > 0 and np.abs(rows.params["nu"][2]).max() > 0
+    if effects:
+        assert all(np.abs(rows.params[name][1]).max() > 0
+                   for name in ("wind.a", "linear_drag.coefficient", "damping.viscosity"))
     # at the stiffest row's step the soft rows' gradients are others (what own steps are for)
     together.rollout(frames, grad=True)
     common = together.backward(dL)

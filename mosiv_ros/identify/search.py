@@ -107,10 +107,10 @@ class GlobalSearch:
         much as its rows, and the loss of one parameter set differs by up to 10 % between time
         steps), on a GPU in one batched rollout whose rows take their own steps
         (``Simulator.rollout(own_steps=True)``, ``own_step_batches``; one row after another in a
-        scene with colliders or with stress or grid-force effects). On the CPU the rows, or slices
-        of them when together, are simulated side by side, one simulator per core
-        (``FitSettings.cpu_workers``). Over frames 1..``frames`` (default all); NaN where a rollout
-        diverged (every row of its batch or slice).
+        scene with colliders). On the CPU the rows, or slices of them when together, are
+        simulated side by side, one simulator per core (``FitSettings.cpu_workers``). Over
+        frames 1..``frames`` (default all); NaN where a rollout diverged (every row of its batch
+        or slice).
 
         The GPU's default keeps the stiffest row's step: scored at their own steps, the search's
         rows of elastic_on_plastic led it to another basin (benchmarks/RESULTS.md, "Search rows at
