@@ -55,7 +55,6 @@ from mosiv_ros.sim.params import add_param, lane_particle, param
 from mosiv_ros.sim.warp_reduce import add, run_start, scatter
 
 MAX_COLLIDERS = 2
-MAX_COLLIDERS_W = wp.constant(MAX_COLLIDERS)
 WALL = wp.constant(WALL_CELLS)
 CONTACT_MASS_FRACTION = wp.constant(1.0e-3)
 # Grid nodes less than this fraction of a cell above the ground plane count as on it (their
@@ -417,111 +416,127 @@ def contact_totals(
         wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
 
 
-@wp.kernel
-def grid_update(
-    grid_m: wp.array(dtype=float),
-    grid_p: wp.array(dtype=wp.vec3),
-    grid_a: wp.array(dtype=wp.vec3),
-    uniform: wp.array(dtype=float),
-    friction: wp.array(dtype=float),
-    grid_present_m: wp.array(dtype=float),
-    grid_present_p: wp.array(dtype=wp.vec3),
-    grid_present_mu: wp.array(dtype=float),
-    normal_rank: wp.array(dtype=int),
-    ranked_object: wp.array(dtype=int),
-    ground_height: wp.array(dtype=float),
-    ground_normal: wp.array(dtype=float),
-    ground_friction: wp.array(dtype=float),
-    has_ground: int,
-    collider_shape: wp.array(dtype=int),
-    collider_size: wp.array(dtype=wp.vec3),
-    collider_friction: wp.array(dtype=float),
-    collider_pos: wp.array(dtype=wp.vec3),
-    collider_rot: wp.array(dtype=wp.quat),
-    collider_vel: wp.array(dtype=wp.vec3),
-    collider_omega: wp.array(dtype=wp.vec3),
-    substep: int,
-    collider_count: int,
-    n_objects: int,
-    n_nodes: int,
-    dims: wp.vec3i,
-    box_lo: wp.vec3i,
-    box_dims: wp.vec3i,
-    lo: wp.vec3,
-    dx: float,
-    own_dt: wp.array(dtype=float),
-    grid_v: wp.array(dtype=wp.vec3),
-):
-    """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
+def _grid_update(colliders: int) -> wp.Kernel:
+    """``grid_update`` for scenes of at most ``colliders`` colliders, a constant of its code.
 
-    The contact sums (``contact_totals``) are only read when there are several objects; the
-    count of fields present and the largest of them are found here (``present_fields``).
+    The colliders' projections are unrolled into the kernel, and Warp's adjoint keeps their
+    intermediates live: on an H200 the adjoint of a sample scene's grid took 246 registers a
+    thread and 15.7-16.3 us a launch with two colliders' code, 120 and 11.4-12.1 us without
+    (benchmarks/RESULTS.md, "kernels specialised to the scene"). So a scene without colliders
+    runs ``grid_update_free``.
     """
-    index = field_node(wp.tid(), box_lo, box_dims, dims)
-    m = grid_m[index]
-    if m <= 0.0:
-        return  # no particle's stencil reads an empty field node; grid_v was zeroed (or is grid_p, zero here)
-    batch = index // (n_objects * n_nodes)
-    k = (index // n_nodes) % n_objects
-    node = index % n_nodes
-    i = node // (dims[1] * dims[2])
-    j = (node // dims[2]) % dims[1]
-    l = node % dims[2]
-    x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
-    vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
 
-    if n_objects > 1:
-        at = batch * n_nodes + node
-        first = batch * n_objects * n_nodes + node
-        present = node_total(grid_m, first, n_nodes, n_objects) * CONTACT_MASS_FRACTION
-        fields = present_fields(grid_m, first, n_nodes, n_objects, present, normal_rank)
-        if fields[0] > 1 and m > present:
-            lead = ranked_object[fields[1]]
-            g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
-                                   1.0 / dx)
-            g_len = wp.length(g_lead)
-            if g_len > 0.0:
-                # outward normal of field k towards the others: into the lead object, or out of it
-                # when k is the lead
-                n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
-                if k == lead:
-                    n = -n
-                m_total = grid_present_m[at]
-                mu_k = param(friction, batch * n_objects + k, index)
-                mu_pair = 0.5 * (mu_k + (grid_present_mu[at] - mu_k * m) / (m_total - m))
-                v_cm = divide(grid_present_p[at], m_total)
-                rel = vel - v_cm
-                if wp.dot(rel, n) > 0.0:
-                    # approaching: the others are a surface of outward normal -n
-                    vel = v_cm + coulomb(rel, -n, mu_pair)
+    @wp.kernel
+    def grid_update(
+        grid_m: wp.array(dtype=float),
+        grid_p: wp.array(dtype=wp.vec3),
+        grid_a: wp.array(dtype=wp.vec3),
+        uniform: wp.array(dtype=float),
+        friction: wp.array(dtype=float),
+        grid_present_m: wp.array(dtype=float),
+        grid_present_p: wp.array(dtype=wp.vec3),
+        grid_present_mu: wp.array(dtype=float),
+        normal_rank: wp.array(dtype=int),
+        ranked_object: wp.array(dtype=int),
+        ground_height: wp.array(dtype=float),
+        ground_normal: wp.array(dtype=float),
+        ground_friction: wp.array(dtype=float),
+        has_ground: int,
+        collider_shape: wp.array(dtype=int),
+        collider_size: wp.array(dtype=wp.vec3),
+        collider_friction: wp.array(dtype=float),
+        collider_pos: wp.array(dtype=wp.vec3),
+        collider_rot: wp.array(dtype=wp.quat),
+        collider_vel: wp.array(dtype=wp.vec3),
+        collider_omega: wp.array(dtype=wp.vec3),
+        substep: int,
+        collider_count: int,
+        n_objects: int,
+        n_nodes: int,
+        dims: wp.vec3i,
+        box_lo: wp.vec3i,
+        box_dims: wp.vec3i,
+        lo: wp.vec3,
+        dx: float,
+        own_dt: wp.array(dtype=float),
+        grid_v: wp.array(dtype=wp.vec3),
+    ):
+        """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
 
-    if has_ground != 0:
-        n_ground = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, index),
-                                        param(ground_normal, 3 * batch + 1, index),
-                                        param(ground_normal, 3 * batch + 2, index)))
-        if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
-            vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
-    for c in range(MAX_COLLIDERS_W):
-        if c < collider_count:
-            row = substep * collider_count + c
-            r = x_node - collider_pos[row]
-            local = wp.quat_rotate_inv(collider_rot[row], r)
-            sd = collider_sdf(collider_shape[c], collider_size[c], local)
-            if sd[0] < 0.0:
-                normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
-                v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
-                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
-    # slip walls: no velocity into a domain face within WALL nodes of it
-    vx = vel[0]
-    vy = vel[1]
-    vz = vel[2]
-    if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
-        vx = 0.0
-    if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
-        vy = 0.0
-    if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
-        vz = 0.0
-    grid_v[index] = wp.vec3(vx, vy, vz)
+        The contact sums (``contact_totals``) are only read when there are several objects; the
+        count of fields present and the largest of them are found here (``present_fields``).
+        """
+        index = field_node(wp.tid(), box_lo, box_dims, dims)
+        m = grid_m[index]
+        if m <= 0.0:
+            return  # no particle's stencil reads an empty field node; grid_v was zeroed (or is grid_p, zero here)
+        batch = index // (n_objects * n_nodes)
+        k = (index // n_nodes) % n_objects
+        node = index % n_nodes
+        i = node // (dims[1] * dims[2])
+        j = (node // dims[2]) % dims[1]
+        l = node % dims[2]
+        x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
+        vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
+
+        if n_objects > 1:
+            at = batch * n_nodes + node
+            first = batch * n_objects * n_nodes + node
+            present = node_total(grid_m, first, n_nodes, n_objects) * CONTACT_MASS_FRACTION
+            fields = present_fields(grid_m, first, n_nodes, n_objects, present, normal_rank)
+            if fields[0] > 1 and m > present:
+                lead = ranked_object[fields[1]]
+                g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
+                                       1.0 / dx)
+                g_len = wp.length(g_lead)
+                if g_len > 0.0:
+                    # outward normal of field k towards the others: into the lead object, or out of it
+                    # when k is the lead
+                    n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
+                    if k == lead:
+                        n = -n
+                    m_total = grid_present_m[at]
+                    mu_k = param(friction, batch * n_objects + k, index)
+                    mu_pair = 0.5 * (mu_k + (grid_present_mu[at] - mu_k * m) / (m_total - m))
+                    v_cm = divide(grid_present_p[at], m_total)
+                    rel = vel - v_cm
+                    if wp.dot(rel, n) > 0.0:
+                        # approaching: the others are a surface of outward normal -n
+                        vel = v_cm + coulomb(rel, -n, mu_pair)
+
+        if has_ground != 0:
+            n_ground = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, index),
+                                            param(ground_normal, 3 * batch + 1, index),
+                                            param(ground_normal, 3 * batch + 2, index)))
+            if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
+                vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
+        for c in range(colliders):
+            if c < collider_count:
+                row = substep * collider_count + c
+                r = x_node - collider_pos[row]
+                local = wp.quat_rotate_inv(collider_rot[row], r)
+                sd = collider_sdf(collider_shape[c], collider_size[c], local)
+                if sd[0] < 0.0:
+                    normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
+                    v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
+                    vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+        # slip walls: no velocity into a domain face within WALL nodes of it
+        vx = vel[0]
+        vy = vel[1]
+        vz = vel[2]
+        if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
+            vx = 0.0
+        if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
+            vy = 0.0
+        if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
+            vz = 0.0
+        grid_v[index] = wp.vec3(vx, vy, vz)
+
+    return grid_update
+
+
+grid_update = _grid_update(MAX_COLLIDERS)
+grid_update_free = _grid_update(0)
 
 
 @wp.kernel(enable_backward=False)

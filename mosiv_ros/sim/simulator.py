@@ -807,6 +807,8 @@ class Simulator:
         self.set_volume(particles.volume)
         self.set_initial_velocity(particles.v)
         self._setup_colliders()
+        # without colliders, the grid update without their code (``kernels._grid_update``)
+        self._grid_update = kernels.grid_update if self.config.colliders else kernels.grid_update_free
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
@@ -1171,7 +1173,7 @@ class Simulator:
         box = self._box_args[1]
         if K > 1:
             self._run(kernels.contact_totals, n_box, grid=grid, **box, **steps)
-        self._run(kernels.grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
+        self._run(self._grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
                   **box, **steps)
         self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, **steps)
 
