@@ -422,8 +422,8 @@ def _grid_update(colliders: int) -> wp.Kernel:
     The colliders' projections are unrolled into the kernel, and Warp's adjoint keeps their
     intermediates live: on an H200 the adjoint of a sample scene's grid took 246 registers a
     thread and 15.7-16.3 us a launch with two colliders' code, 120 and 11.4-12.1 us without
-    (benchmarks/RESULTS.md, "kernels specialised to the scene"). So a scene without colliders
-    runs ``grid_update_free``.
+    (benchmarks/RESULTS.md, "The search's closest ends raced in step"). So a scene without
+    colliders runs ``grid_update_free``.
     """
 
     @wp.kernel
