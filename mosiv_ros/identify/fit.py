@@ -345,6 +345,19 @@ class Identifier:
         linear, angular = velocity[self.index, :3], velocity[self.index, 3:]
         return linear + np.cross(angular, self.problem.particles.x - self.centre0[self.index])
 
+    def velocity_gradient(self, g0: np.ndarray) -> np.ndarray:
+        """dL/d(object velocities) (K, 6) from dL/d(particle velocities) ``g0`` (N, 3).
+
+        The adjoint of ``particle_velocity``.
+        """
+        r = self.problem.particles.x - self.centre0[self.index]
+        dv = np.zeros((len(self.problem.objects), 6))
+        for k in range(len(dv)):
+            mine = self.index == k
+            dv[k, :3] = g0[mine].sum(axis=0)
+            dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
+        return dv
+
     def offsets_of(self, points: np.ndarray) -> np.ndarray:
         """The boundary offsets (R, K) of coordinate rows ``points`` (R, P); ``offsets`` where no entry sets them."""
         offsets = np.repeat(self.offsets[None], len(points), axis=0)
@@ -404,14 +417,8 @@ class Identifier:
             du = np.array([(offset_grads[e.index[1]] if e.name == OFFSET
                             else grads.params[e.name][(row, *e.index[1:])])
                            * e.coordinate.dtheta_du(u[i]) for i, e in enumerate(self.entries)])
-            dv = np.zeros((obs.n_objects, 6))
-            if initial is None:  # velocities are parameters only of windows from frame 0
-                g0 = grads.v0[row]
-                r = self.problem.particles.x - self.centre0[self.index]
-                for k in range(obs.n_objects):
-                    mine = self.index == k
-                    dv[k, :3] = g0[mine].sum(axis=0)
-                    dv[k, 3:] = np.cross(r[mine], g0[mine]).sum(axis=0)
+            # velocities are parameters only of windows from frame 0
+            dv = self.velocity_gradient(grads.v0[row]) if initial is None else np.zeros((obs.n_objects, 6))
             results.append((float(total), du, dv, per))
         return results
 

@@ -1150,7 +1150,6 @@ class Simulator:
         default the rollouts', apply). Each batch row's step is ``_set_steps``'. ``cleared``:
         ``grid`` is zero already (``_record_frame``).
         """
-        steps = {"own": self._steps}
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
         if cleared:
@@ -1162,7 +1161,7 @@ class Simulator:
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, **steps)
+        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, own=self._steps)
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, d, box_lo, box_dims)
         for effect in self.effects:
             if effect.has_accelerate:
@@ -1172,10 +1171,10 @@ class Simulator:
             self._box_args = ((box_lo, box_dims), {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)})
         box = self._box_args[1]
         if K > 1:
-            self._run(kernels.contact_totals, n_box, grid=grid, **box, **steps)
+            self._run(kernels.contact_totals, n_box, grid=grid, **box, own=self._steps)
         self._run(self._grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
-                  **box, **steps)
-        self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, **steps)
+                  **box, own=self._steps)
+        self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, own=self._steps)
 
     def _active_box(self, state: _State) -> tuple[tuple[int, ...], tuple[int, ...]]:
         """Lower corner and size (nodes) of the box of grid nodes the grid passes run over.
