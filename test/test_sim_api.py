@@ -636,6 +636,33 @@ def test_particles_spread_over_more_thread_blocks_move_and_differentiate_as_pack
     assert np.abs(results[0][1].params["friction"]).max() > 0  # they touched
 
 
+@pytest.mark.parametrize("block_warps", [1, 8])
+def test_a_stencil_split_over_three_threads_moves_and_differentiates_as_one_thread(block_warps):
+    """``kernels._p2g(3)``: each of a particle's three threads scatters one plane of its stencil.
+
+    The grid's sums add in another order (so to rounding, amplified by the contact), and each
+    particle's state and gradients are written and read once, not three times.
+    """
+    whole, split = _two_balls(n_batch=2), _two_balls(n_batch=2)
+    whole._spread(block_warps)
+    split._spread(block_warps, planes=3)
+    results = []
+    for sim in (whole, split):
+        traj = sim.rollout(3, grad=True)
+        seed = np.random.default_rng(2).normal(size=traj.shape).astype(np.float32)
+        results.append((traj, sim.backward(seed)))
+    (traj_whole, grads_whole), (traj_split, grads_split) = results
+    assert np.abs(traj_whole[-1] - traj_whole[0]).max() > 0.02  # they moved
+    assert np.abs(traj_split - traj_whole).max() < 1e-5
+    for name in ("E", "nu", "yield_stress", "friction"):  # the balls touch each other, not the ground
+        a, b = grads_whole.params[name], grads_split.params[name]
+        assert np.abs(a).max() > 0, name
+        assert np.allclose(b, a, rtol=1e-3, atol=1e-4 * np.abs(a).max()), name
+    for field in ("v0", "volume"):
+        a, b = getattr(grads_whole, field), getattr(grads_split, field)
+        assert np.abs(b - a).max() < 1e-3 * np.abs(a).max(), field
+
+
 def test_a_gpu_spreads_particles_over_at_least_spread_blocks_where_it_has_the_warps():
     from mosiv_ros.sim.simulator import SPREAD_BLOCKS, _block_warps
 
@@ -646,6 +673,20 @@ def test_a_gpu_spreads_particles_over_at_least_spread_blocks_where_it_has_the_wa
         assert blocks >= SPREAD_BLOCKS or warps == 1  # as many blocks as asked, if there are the warps
         assert warps == 8 or halved < SPREAD_BLOCKS  # and no fewer warps a block than needed
     assert _block_warps(3121) == 1 and _block_warps(100_000) == 8
+
+
+def test_a_gpu_splits_p2g_over_three_threads_a_particle_where_their_blocks_fit_in_one_wave():
+    from mosiv_ros.sim.simulator import SPREAD_BLOCKS, _block_warps, _p2g_planes
+
+    for n in (1, 300, 3554, 6000, 10_662, 10_900, 11_000, 100_000, 1_000_000):
+        planes, warps = _p2g_planes(n)
+        blocks = -(-n // (32 * warps))
+        if planes == 3:
+            assert 3 * blocks <= SPREAD_BLOCKS  # one wave of the adjoint's one block a multiprocessor
+            assert warps == 1 or 3 * -(-n // (16 * warps)) > SPREAD_BLOCKS  # no more warps a block than needed
+        else:
+            assert planes == 1 and warps == _block_warps(n) and 3 * -(-n // 256) > SPREAD_BLOCKS
+    assert _p2g_planes(3554) == (3, 4) and _p2g_planes(100_000) == (1, 8)
 
 
 def _equal(a: np.ndarray, b: np.ndarray) -> bool:

@@ -139,99 +139,138 @@ def own_turn(own_substeps: wp.array(dtype=int), batch: int, substep: int):
     return substep < own_substeps[batch]
 
 
-@wp.kernel
-def p2g(
-    src_x: wp.array(dtype=wp.vec3),
-    src_v: wp.array(dtype=wp.vec3),
-    src_C: wp.array(dtype=wp.mat33),
-    src_b: wp.array(dtype=wp.mat33),
-    volume: wp.array(dtype=float),
-    grid_tau: wp.array(dtype=wp.mat33),
-    obj: wp.array(dtype=int),
-    family: wp.array(dtype=int),
-    E: wp.array(dtype=float),
-    nu: wp.array(dtype=float),
-    yield_stress: wp.array(dtype=float),
-    friction_angle: wp.array(dtype=float),
-    bulk_modulus: wp.array(dtype=float),
-    viscosity: wp.array(dtype=float),
-    density: wp.array(dtype=float),
-    n_particles: int,
-    part: int,
-    parts: int,
-    block_warps: int,
-    n_objects: int,
-    n_nodes: int,
-    dims: wp.vec3i,
-    lo: wp.vec3,
-    dx: float,
-    own_dt: wp.array(dtype=float),
-    own_substeps: wp.array(dtype=int),
-    substep: int,
-    dst_b: wp.array(dtype=wp.mat33),
-    grid_m: wp.array(dtype=float),
-    grid_p: wp.array(dtype=wp.vec3),
-):
-    """Deformation update, return mapping, stress, and scatter of mass and momentum.
+@wp.func
+def scatter_plane(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), a: int, w_a: float,
+                  wy: wp.vec3, wz: wp.vec3, mass: float, at_origin: wp.vec3, per_x: wp.vec3,
+                  per_y: wp.vec3, per_z: wp.vec3, offset: int, base: wp.vec3i, dims: wp.vec3i, run: int):
+    """P2G's scatter to the nine nodes of plane ``a`` of a particle's stencil, whose x weight is ``w_a``.
 
-    The forward pass runs as one part (``parts`` = 1). The adjoint writes each particle's own
-    gradients and its replica of each parameter's, so on the CPU it runs in parts side by side
-    (``params.lane_particle``).
+    A node's momentum is w (m v + affine dpos) with dpos = (o - fx) dx at offset o: ``at_origin``
+    the part at o = (0, 0, 0), ``per_x``, ... the affine matrix's columns times dx, per unit offset.
     """
-    i = block_particle(lane_particle(wp.tid(), part, parts), block_warps, src_x.shape[0])
-    if i < 0:
-        return
-    batch = i // n_particles
-    if not own_turn(own_substeps, batch, substep):  # a row whose frame is done: its state stays
-        dst_b[i] = src_b[i]
-        return
-    h = own_dt[batch]
-    k = obj[i - batch * n_particles]
-    q = batch * n_objects + k
-    fam = family[k]
-    # each particle array is read once: every read is an atomic add of its adjoint
-    x_i = src_x[i]
-    C_i = src_C[i]
-    # b <- f b f^T with f = I + h C (Hu et al. 2018, Eq. 17 applied to b = F F^T; h the row's dt)
-    f = wp.identity(n=3, dtype=float) + C_i * h
-    b_trial = f * src_b[i] * wp.transpose(f)
-    E_q = param(E, q, i)
-    nu_q = param(nu, q, i)
-    b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
-                           param(friction_angle, q, i))
-    dst_b[i] = b_new
-    tau = kirchhoff_stress(fam, b_new, C_i, E_q, nu_q, param(bulk_modulus, q, i),
-                           param(viscosity, q, i))
-    if grid_tau.shape[0] > 0:
-        tau = tau + grid_tau[i]
-    inv_dx = 1.0 / dx
-    vol = volume[i]
-    mass = param(density, q, i) * vol
-    # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
-    affine = tau * (-h * vol * 4.0 * inv_dx * inv_dx) + C_i * mass
-    base = stencil_base(x_i, lo, inv_dx, dims)
-    fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    wx = bspline_weights(fx[0])
-    wy = bspline_weights(fx[1])
-    wz = bspline_weights(fx[2])
-    offset = q * n_nodes
-    # a node's momentum is w (m v + affine dpos) with dpos = (o - fx) dx at offset o: the part
-    # at o = (0, 0, 0), and per unit offset along each axis the affine matrix's column times dx
-    moved = affine * dx
-    at_origin = src_v[i] * mass - moved * fx
-    per_x = wp.vec3(moved[0, 0], moved[1, 0], moved[2, 0])
-    per_y = wp.vec3(moved[0, 1], moved[1, 1], moved[2, 1])
-    per_z = wp.vec3(moved[0, 2], moved[1, 2], moved[2, 2])
-    # neighbouring lanes with the same stencil add once per node (sim.warp_reduce)
-    run = run_start(offset + node_index(base[0], base[1], base[2], dims))
-    for a in range(3):
-        for c in range(3):
-            for e in range(3):
-                weight = wx[a] * wy[c] * wz[e]
-                node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
-                scatter(grid_m, grid_p, node, run, weight * mass, p_node * weight)
+    for c in range(3):
+        for e in range(3):
+            weight = w_a * wy[c] * wz[e]
+            node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+            p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
+            scatter(grid_m, grid_p, node, run, weight * mass, p_node * weight)
 
+
+def _p2g(planes: int) -> wp.Kernel:
+    """``p2g`` with a particle's stencil split over ``planes`` threads (1 or 3), a constant of its code.
+
+    With 3, each of a particle's threads scatters the nine nodes of one plane of its stencil
+    (a = 0, 1, 2 along x), and each computes the particle's deformation and stress itself; only
+    the first writes the particle's b, so that its adjoint is read once. The threads are
+    plane-major (``plane_threads`` a plane), so a warp's lanes scatter one plane and their runs
+    (``warp_reduce``) still share nodes. On a GPU a sample scene's few thousand particles leave
+    nearly every multiprocessor idle, and a launch takes as long as one thread's chain of work:
+    three shorter chains side by side cost less than one long one, the stress computed three
+    times included (``Simulator._spread`` picks the planes, ``simulator._p2g_planes``; one on
+    the CPU, where every thread costs).
+    """
+
+    @wp.kernel
+    def p2g(
+        src_x: wp.array(dtype=wp.vec3),
+        src_v: wp.array(dtype=wp.vec3),
+        src_C: wp.array(dtype=wp.mat33),
+        src_b: wp.array(dtype=wp.mat33),
+        volume: wp.array(dtype=float),
+        grid_tau: wp.array(dtype=wp.mat33),
+        obj: wp.array(dtype=int),
+        family: wp.array(dtype=int),
+        E: wp.array(dtype=float),
+        nu: wp.array(dtype=float),
+        yield_stress: wp.array(dtype=float),
+        friction_angle: wp.array(dtype=float),
+        bulk_modulus: wp.array(dtype=float),
+        viscosity: wp.array(dtype=float),
+        density: wp.array(dtype=float),
+        n_particles: int,
+        plane_threads: int,
+        part: int,
+        parts: int,
+        plane_warps: int,
+        n_objects: int,
+        n_nodes: int,
+        dims: wp.vec3i,
+        lo: wp.vec3,
+        dx: float,
+        own_dt: wp.array(dtype=float),
+        own_substeps: wp.array(dtype=int),
+        substep: int,
+        dst_b: wp.array(dtype=wp.mat33),
+        grid_m: wp.array(dtype=float),
+        grid_p: wp.array(dtype=wp.vec3),
+    ):
+        """Deformation update, return mapping, stress, and scatter of mass and momentum.
+
+        The forward pass runs as one part (``parts`` = 1). The adjoint writes each particle's own
+        gradients and its replica of each parameter's, so on the CPU it runs in parts side by side
+        (``params.lane_particle``).
+        """
+        t = wp.tid()
+        plane = t // plane_threads  # 0 where ``planes`` is 1: the launch has plane_threads threads
+        i = block_particle(lane_particle(t - plane * plane_threads, part, parts), plane_warps, src_x.shape[0])
+        if i < 0:
+            return
+        batch = i // n_particles
+        if not own_turn(own_substeps, batch, substep):  # a row whose frame is done: its state stays
+            if plane == 0:
+                dst_b[i] = src_b[i]
+            return
+        h = own_dt[batch]
+        k = obj[i - batch * n_particles]
+        q = batch * n_objects + k
+        fam = family[k]
+        # each particle array is read once: every read is an atomic add of its adjoint
+        x_i = src_x[i]
+        C_i = src_C[i]
+        # b <- f b f^T with f = I + h C (Hu et al. 2018, Eq. 17 applied to b = F F^T; h the row's dt)
+        f = wp.identity(n=3, dtype=float) + C_i * h
+        b_trial = f * src_b[i] * wp.transpose(f)
+        E_q = param(E, q, i)
+        nu_q = param(nu, q, i)
+        b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i),
+                               param(friction_angle, q, i))
+        if plane == 0:  # one thread writes the particle's state, so its adjoint is read once
+            dst_b[i] = b_new
+        tau = kirchhoff_stress(fam, b_new, C_i, E_q, nu_q, param(bulk_modulus, q, i),
+                               param(viscosity, q, i))
+        if grid_tau.shape[0] > 0:
+            tau = tau + grid_tau[i]
+        inv_dx = 1.0 / dx
+        vol = volume[i]
+        mass = param(density, q, i) * vol
+        # MLS-MPM fused momentum/stress scatter (Hu et al. 2018, Eq. 29): D^-1 = 4 / dx^2
+        affine = tau * (-h * vol * 4.0 * inv_dx * inv_dx) + C_i * mass
+        base = stencil_base(x_i, lo, inv_dx, dims)
+        fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        wx = bspline_weights(fx[0])
+        wy = bspline_weights(fx[1])
+        wz = bspline_weights(fx[2])
+        offset = q * n_nodes
+        moved = affine * dx  # per unit offset along each axis, a column (``scatter_plane``)
+        at_origin = src_v[i] * mass - moved * fx
+        per_x = wp.vec3(moved[0, 0], moved[1, 0], moved[2, 0])
+        per_y = wp.vec3(moved[0, 1], moved[1, 1], moved[2, 1])
+        per_z = wp.vec3(moved[0, 2], moved[1, 2], moved[2, 2])
+        # neighbouring lanes with the same stencil add once per node (sim.warp_reduce)
+        run = run_start(offset + node_index(base[0], base[1], base[2], dims))
+        if wp.static(planes == 1):
+            for a in range(3):
+                scatter_plane(grid_m, grid_p, a, wx[a], wy, wz, mass, at_origin, per_x, per_y, per_z,
+                              offset, base, dims, run)
+        else:
+            scatter_plane(grid_m, grid_p, plane, wx[plane], wy, wz, mass, at_origin, per_x, per_y, per_z,
+                          offset, base, dims, run)
+
+    return p2g
+
+
+p2g = _p2g(1)
+p2g_planes = _p2g(3)
 
 @wp.func
 def divide(a: wp.vec3, s: float):

@@ -628,6 +628,27 @@ def _block_warps(n: int) -> int:
     return min(kernels.BLOCK_WARPS, 1 << (max(-(-n // 32) // SPREAD_BLOCKS, 1).bit_length() - 1))
 
 
+def _particle_threads(n: int, block_warps: int) -> int:
+    """Threads of a launch over ``n`` particles with ``block_warps`` warps of them a block (``Simulator._spread``)."""
+    if block_warps == kernels.BLOCK_WARPS:
+        return n
+    return -(-n // (32 * block_warps)) * kernels.BLOCK_WARPS * 32
+
+
+def _p2g_planes(n: int) -> tuple[int, int]:
+    """P2G's threads a particle on a GPU and its warps a block, for ``n`` particles (``kernels._p2g``).
+
+    Three threads a particle where their blocks fit in one wave of P2G's adjoint: it takes 255
+    registers a thread, so that one 256-thread block fills a multiprocessor's registers. The
+    warps a block are the fewest that keep the blocks to ``SPREAD_BLOCKS``; with more particles,
+    one thread a particle, spread as G2P (``_block_warps``).
+    """
+    for warps in (1, 2, 4, kernels.BLOCK_WARPS):
+        if 3 * -(-n // (32 * warps)) <= SPREAD_BLOCKS:
+            return 3, warps
+    return 1, _block_warps(n)
+
+
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
 _G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_normal", "dst_x", "dst_v",
@@ -821,7 +842,11 @@ class Simulator:
             "uniform": self._uniform_sums[-1] if self._uniform_sums else self._uniform_parts[0],
             **{name.replace(".", "_"): self.params[name] for name in self.params.specs},
         }
-        self._spread(kernels.BLOCK_WARPS if self.device == "cpu" else _block_warps(self.n_batch * self.n_particles))
+        if self.device == "cpu":
+            self._spread(kernels.BLOCK_WARPS)
+        else:
+            n = self.n_batch * self.n_particles
+            self._spread(_block_warps(n), *_p2g_planes(n))
         self._stress = any(e.has_stress for e in self.effects)
         self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
@@ -845,7 +870,7 @@ class Simulator:
 
     # --- set-up and checks ----------------------------------------------------------------
 
-    def _spread(self, block_warps: int) -> None:
+    def _spread(self, block_warps: int, planes: int = 1, plane_warps: int | None = None) -> None:
         """Run P2G and G2P with ``block_warps`` warps of particles in each block of 256 threads.
 
         A small scene's particles fill few blocks (one row of a sample bag's 3,121: 13 blocks of
@@ -855,15 +880,25 @@ class Simulator:
         warps return at once (``kernels.block_particle``). Every particle runs as before, so
         the results are the same (on the CPU, where the threads run in order, to the bit).
         ``block_warps`` is 1, 2, 4 or 8: so a lane's replicas follow its particle's, as the CPU
-        adjoint's parts need (``params.lane_particle``). Set before the first rollout: recorded
-        commands and captured graphs keep the launches they were made with.
+        adjoint's parts need (``params.lane_particle``). ``planes`` threads a particle (1 or 3)
+        run P2G, with ``plane_warps`` warps of particles a block (``block_warps`` by default;
+        ``kernels._p2g``, ``_p2g_planes``). Set before the first rollout: recorded commands and
+        captured graphs keep the launches they were made with.
         """
-        if block_warps not in (1, 2, 4, 8):
-            raise ValueError(f"block_warps must be 1, 2, 4 or 8, not {block_warps}")
+        plane_warps = plane_warps or block_warps
+        if block_warps not in (1, 2, 4, 8) or plane_warps not in (1, 2, 4, 8):
+            raise ValueError(f"block_warps and plane_warps must be 1, 2, 4 or 8, not {block_warps}, {plane_warps}")
+        if planes not in (1, 3):
+            raise ValueError(f"planes must be 1 or 3, not {planes}")
         n = self.n_batch * self.n_particles
-        self._scene["block_warps"] = block_warps
-        lanes = 32 * block_warps
-        self._particle_threads = n if block_warps == kernels.BLOCK_WARPS else -(-n // lanes) * kernels.BLOCK_WARPS * 32
+        self._scene["block_warps"], self._scene["plane_warps"] = block_warps, plane_warps
+        self._particle_threads = _particle_threads(n, block_warps)
+        plane_threads = _particle_threads(n, plane_warps)
+        if planes > 1:  # whole blocks a plane, so that a warp's lanes scatter one plane
+            plane_threads = -(-plane_threads // (kernels.BLOCK_WARPS * 32)) * kernels.BLOCK_WARPS * 32
+        self._scene["plane_threads"] = plane_threads
+        self._p2g = (kernels.p2g, kernels.p2g_planes)[planes > 1]
+        self._p2g_threads = plane_threads * planes
 
     def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
         """The replicas of the uniform accelerations (``Effect.uniform``) and their running sums.
@@ -1161,7 +1196,7 @@ class Simulator:
             for effect in self.effects:
                 if effect.has_stress:
                     effect.stress(view, self._values(effect))
-        self._run(kernels.p2g, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, own=self._steps)
+        self._run(self._p2g, self._p2g_threads, src=src, dst=dst, grid=grid, substep=row, own=self._steps)
         view = GridView(grid.m, grid.p, grid.a, B, K, G, self.dims, self.lo, self.dx, d, box_lo, box_dims)
         for effect in self.effects:
             if effect.has_accelerate:
@@ -1362,11 +1397,14 @@ class Simulator:
         if helper is None or "parts" not in labels:
             run(key, kernel, dim, args, tape)
             return
-        jobs = []
+        jobs, plane_threads = [], args[labels["plane_threads"]]
         for part in range(ADJOINT_PARTS):
             args = list(args)
             args[labels["part"]], args[labels["parts"]] = part, ADJOINT_PARTS
-            jobs.append(partial(run, (*key, part), kernel, lane_count(dim, part, ADJOINT_PARTS), args, tape))
+            # each plane of the stencil (``kernels._p2g``) takes this part's lanes
+            args[labels["plane_threads"]] = lane_count(plane_threads, part, ADJOINT_PARTS)
+            threads = dim // plane_threads * args[labels["plane_threads"]]
+            jobs.append(partial(run, (*key, part), kernel, threads, args, tape))
         others = [helper.submit(job) for job in jobs[1:]]
         jobs[0]()
         for other in others:
