@@ -272,6 +272,7 @@ def _p2g(planes: int) -> wp.Kernel:
 p2g = _p2g(1)
 p2g_planes = _p2g(3)
 
+
 @wp.func
 def divide(a: wp.vec3, s: float):
     """The quotient a / s (s > 0) by components: the same float32 values, a finite adjoint.
