@@ -897,7 +897,7 @@ class Simulator:
         if planes > 1:  # whole blocks a plane, so that a warp's lanes scatter one plane
             plane_threads = -(-plane_threads // (kernels.BLOCK_WARPS * 32)) * kernels.BLOCK_WARPS * 32
         self._scene["plane_threads"] = plane_threads
-        self._p2g = (kernels.p2g, kernels.p2g_planes)[planes > 1]
+        self._p2g = kernels.p2g_planes if planes > 1 else kernels.p2g
         self._p2g_threads = plane_threads * planes
 
     def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
