@@ -492,16 +492,16 @@ def _two_balls(n_batch=1, effects=None, **config):
 
 
 def test_a_scene_without_colliders_updates_its_grid_as_the_kernel_with_their_code_does():
-    """``kernels.grid_update_free`` against ``grid_update`` on a substep's grid: velocities and adjoints.
+    """The grid update without the colliders' code against the one with it on a substep's grid.
 
-    A two-object contact on the ground near the walls, two parameter sets.
+    Velocities and adjoints of a two-object contact on the ground near the walls, two parameter sets.
     """
     from mosiv_ros.sim.simulator import SimState, _bind, _Grid, _State
 
     sim = _two_balls(n_batch=2)
-    assert sim._grid_update is kernels.grid_update_free
-    assert _two_balls(colliders=[Collider("sphere", (0.03,), np.array([0.0, 1.0]),
-                                          np.array([[0.45, 0.2, 0.3]] * 2))])._grid_update is kernels.grid_update
+    assert sim._grid_update is kernels.grid_update_for(0, 2)
+    assert _two_balls(colliders=[Collider("sphere", (0.03,), np.array([0.0, 1.0]), np.array([[0.45, 0.2, 0.3]] * 2))
+                                 ])._grid_update is kernels.grid_update_for(kernels.MAX_COLLIDERS, 2)
     n_sub, dt = sim.time_step()
     total = 2 * sim.n_particles
     x = np.repeat(sim.initial_positions()[None], 2, axis=0).astype(np.float64)
@@ -513,13 +513,14 @@ def test_a_scene_without_colliders_updates_its_grid_as_the_kernel_with_their_cod
     grids = [_Grid(2, 2, sim.dims, total, False, sim.device, True) for _ in range(2)]
     sim._replicate()
     sim._set_steps(dt, n_sub)
-    sim._substep(src, dst, grids[0], 0)  # P2G, the contact sums, the grid update without colliders
+    sim._substep(src, dst, grids[0], 0)  # P2G and the grid update without colliders
     for a, b in zip(grids[1].arrays, grids[0].arrays, strict=True):
         wp.copy(a, b)
     box_lo, box_dims = sim._active_box(src)
     seed = np.random.default_rng(2).normal(size=(len(grids[0].v), 3)).astype(np.float32)
     velocities, adjoints = [], []
-    for kernel, grid in zip((kernels.grid_update_free, kernels.grid_update), grids, strict=True):
+    for kernel, grid in zip((kernels.grid_update_for(0, 2), kernels.grid_update_for(kernels.MAX_COLLIDERS, 2)), grids,
+                            strict=True):
         grid.v.zero_()
         tape = wp.Tape()
         with tape:
@@ -528,7 +529,7 @@ def test_a_scene_without_colliders_updates_its_grid_as_the_kernel_with_their_cod
                 "box_dims": wp.vec3i(*box_dims), "own": sim._steps}, sim._scene))
         tape.backward(grads={grid.v: wp.array(seed, dtype=wp.vec3, device=sim.device)})
         velocities.append(grid.v.numpy())
-        adjoints.append([a.grad.numpy() for a in (grid.m, grid.p, grid.present_m, grid.present_p)])
+        adjoints.append([a.grad.numpy() for a in (grid.m, grid.p)])
     assert np.count_nonzero(np.abs(velocities[0]).max(axis=1)) > 100
     assert _equal(velocities[0], velocities[1])
     for free, general in zip(*adjoints, strict=True):
@@ -553,7 +554,7 @@ def test_a_grid_reused_after_a_substep_elsewhere_holds_what_a_fresh_grid_holds()
             src, dst = (_State(2 * sim.n_particles, sim.device, False) for _ in range(2))
             sim._assign_state(src, SimState.rest(positions, np.array([0.5, -0.3, 0.2])))
             sim._substep(src, dst, grid, 0)
-    for name in ("m", "p", "a", "v", "present_m", "present_p", "present_mu"):
+    for name in ("m", "p", "a", "v"):
         fresh, reused = (getattr(g, name).numpy() for g in grids)
         assert np.count_nonzero(fresh) > 0 and _equal(fresh, reused), name
 

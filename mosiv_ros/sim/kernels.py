@@ -36,16 +36,20 @@ corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
 accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's, which
-is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU). Warp's adjoint does
-not support dynamic loops that carry a differentiable value, so the differentiable sums over a
-node's fields are atomics in ``contact_totals``, and ``grid_update`` runs one thread per field
-node; the loops over a node's fields (``node_total``, ``present_fields``) give only thresholds
-and integers, and sit in functions, whose calls the adjoint replays as the forward ran them.
-Both passes launch over a box of nodes (``field_node``): the whole grid, or on the CPU, where
-every thread costs, the nodes the particles' stencils can reach (``Simulator._active_box``).
+is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU). Warp's adjoint of a
+loop whose bound is known only at run time gets a differentiable value the loop carries wrong
+(a sum over a node's fields came out inf and NaN), so ``grid_update`` is built for the scene's
+object count, and its differentiable sums over a node's fields are loops over that constant,
+unrolled (``grid_update_for``); it runs one thread per field node. The loops over a node's
+fields that give only thresholds and integers (``node_total``, ``present_fields``) sit in
+functions, whose calls the adjoint replays as the forward ran them. The grid pass launches over
+a box of nodes (``field_node``): the whole grid, or on the CPU, where every thread costs, the
+nodes the particles' stencils can reach (``Simulator._active_box``).
 """
 
 from __future__ import annotations
+
+import functools
 
 import warp as wp
 
@@ -80,8 +84,7 @@ def field_node(t: int, box_lo: wp.vec3i, box_dims: wp.vec3i, dims: wp.vec3i):
     The launch has one thread per node of the box (``box_dims`` nodes from ``box_lo``) in each
     (batch, object) field, field-major; the whole grid is the box (0, 0, 0) + ``dims``, where
     the thread's index is the node's, found without integer divisions (on a GPU these took a
-    fifth of ``grid_update``'s time and a third of ``contact_totals``' over the mostly empty
-    grids of a search batch).
+    fifth of the grid passes' time over the mostly empty grids of a search batch).
     """
     if box_lo[0] == 0 and box_lo[1] == 0 and box_lo[2] == 0 and box_dims[0] == dims[0] and (
             box_dims[1] == dims[1] and box_dims[2] == dims[2]):
@@ -418,64 +421,29 @@ def present_fields(grid_m: wp.array(dtype=float), first: int, n_nodes: int, n_ob
     return wp.vec2i(count, lead_rank)
 
 
-@wp.kernel
-def contact_totals(
-    grid_m: wp.array(dtype=float),
-    grid_p: wp.array(dtype=wp.vec3),
-    grid_a: wp.array(dtype=wp.vec3),
-    uniform: wp.array(dtype=float),
-    friction: wp.array(dtype=float),
-    n_nodes: int,
-    n_objects: int,
-    dims: wp.vec3i,
-    box_lo: wp.vec3i,
-    box_dims: wp.vec3i,
-    own_dt: wp.array(dtype=float),
-    grid_present_m: wp.array(dtype=float),
-    grid_present_p: wp.array(dtype=wp.vec3),
-    grid_present_mu: wp.array(dtype=float),
-):
-    """Sums over the fields present at each node (contact pass, one thread per field node).
+@functools.cache
+def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
+    """``grid_update`` for scenes of ``objects`` objects and at most ``colliders`` colliders.
 
-    A field is present when it holds more than CONTACT_MASS_FRACTION of the node's mass: the far
-    fringe of an object's kernel support, and M-PhyGs boundary particles outside the surface
-    (whose volume fades to 1e-4 of a particle's), take no part in contact. Sums: mass, momentum
-    after the effects (m v) and friction-weighted mass (mu m).
-    """
-    i = field_node(wp.tid(), box_lo, box_dims, dims)
-    m = grid_m[i]
-    if m <= 0.0:
-        return
-    batch = i // (n_objects * n_nodes)
-    k = (i // n_nodes) % n_objects
-    node = batch * n_nodes + i % n_nodes
-    if m > node_total(grid_m, batch * n_objects * n_nodes + i % n_nodes, n_nodes, n_objects) * CONTACT_MASS_FRACTION:
-        wp.atomic_add(grid_present_m, node, m)
-        wp.atomic_add(grid_present_p, node, field_velocity(grid_m, grid_p, grid_a, uniform, batch, i,
-                                                           own_dt[batch]) * m)
-        wp.atomic_add(grid_present_mu, node, param(friction, batch * n_objects + k, i) * m)
+    Both are constants of its code, and each such kernel is a Warp module of its own, built
+    when a scene first needs it (``Simulator``; one module of every variant would rebuild all
+    of them for each new one).
 
-
-def _grid_update(colliders: int) -> wp.Kernel:
-    """``grid_update`` for scenes of at most ``colliders`` colliders, a constant of its code.
-
-    The colliders' projections are unrolled into the kernel, and Warp's adjoint keeps their
-    intermediates live: on an H200 the adjoint of a sample scene's grid took 246 registers a
-    thread and 15.7-16.3 us a launch with two colliders' code, 120 and 11.4-12.1 us without
-    (benchmarks/RESULTS.md, "The search's closest ends raced in step"). So a scene without
-    colliders runs ``grid_update_free``.
+    - The sums over a node's fields (the object contact's centre of mass) are unrolled over the
+      ``objects`` fields (module docstring); a lone object's kernel has no contact code.
+    - The colliders' projections are unrolled too, and Warp's adjoint keeps their intermediates
+      live: on an H200 the adjoint of a sample scene's grid took 246 registers a thread and
+      15.7-16.3 us a launch with two colliders' code, 120 and 11.4-12.1 us without
+      (benchmarks/RESULTS.md, "The search's closest ends raced in step"). So a scene without
+      colliders asks for 0.
     """
 
-    @wp.kernel
     def grid_update(
         grid_m: wp.array(dtype=float),
         grid_p: wp.array(dtype=wp.vec3),
         grid_a: wp.array(dtype=wp.vec3),
         uniform: wp.array(dtype=float),
         friction: wp.array(dtype=float),
-        grid_present_m: wp.array(dtype=float),
-        grid_present_p: wp.array(dtype=wp.vec3),
-        grid_present_mu: wp.array(dtype=float),
         normal_rank: wp.array(dtype=int),
         ranked_object: wp.array(dtype=int),
         ground_height: wp.array(dtype=float),
@@ -503,8 +471,8 @@ def _grid_update(colliders: int) -> wp.Kernel:
     ):
         """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
 
-        The contact sums (``contact_totals``) are only read when there are several objects; the
-        count of fields present and the largest of them are found here (``present_fields``).
+        The object contact reads every field at the node: the count of fields present and the
+        largest of them (``present_fields``), and their sums.
         """
         index = field_node(wp.tid(), box_lo, box_dims, dims)
         m = grid_m[index]
@@ -519,8 +487,7 @@ def _grid_update(colliders: int) -> wp.Kernel:
         x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
         vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
 
-        if n_objects > 1:
-            at = batch * n_nodes + node
+        if wp.static(objects > 1):
             first = batch * n_objects * n_nodes + node
             present = node_total(grid_m, first, n_nodes, n_objects) * CONTACT_MASS_FRACTION
             fields = present_fields(grid_m, first, n_nodes, n_objects, present, normal_rank)
@@ -535,10 +502,21 @@ def _grid_update(colliders: int) -> wp.Kernel:
                     n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
                     if k == lead:
                         n = -n
-                    m_total = grid_present_m[at]
+                    # the sums over the fields present: mass, momentum after the effects, mu m
+                    m_total = float(0.0)
+                    p_total = wp.vec3(0.0)
+                    mu_total = float(0.0)
+                    for other in range(objects):  # unrolled: a constant
+                        at = first + other * n_nodes
+                        m_other = grid_m[at]
+                        if m_other > present:
+                            m_total = m_total + m_other
+                            p_total = p_total + field_velocity(grid_m, grid_p, grid_a, uniform, batch, at,
+                                                               own_dt[batch]) * m_other
+                            mu_total = mu_total + param(friction, batch * n_objects + other, at) * m_other
                     mu_k = param(friction, batch * n_objects + k, index)
-                    mu_pair = 0.5 * (mu_k + (grid_present_mu[at] - mu_k * m) / (m_total - m))
-                    v_cm = divide(grid_present_p[at], m_total)
+                    mu_pair = 0.5 * (mu_k + (mu_total - mu_k * m) / (m_total - m))
+                    v_cm = divide(p_total, m_total)
                     rel = vel - v_cm
                     if wp.dot(rel, n) > 0.0:
                         # approaching: the others are a surface of outward normal -n
@@ -572,11 +550,10 @@ def _grid_update(colliders: int) -> wp.Kernel:
             vz = 0.0
         grid_v[index] = wp.vec3(vx, vy, vz)
 
-    return grid_update
-
-
-grid_update = _grid_update(MAX_COLLIDERS)
-grid_update_free = _grid_update(0)
+    key = f"grid_update_{colliders}_{objects}"
+    module = wp.context.get_module(f"{__name__}.{key}")
+    module.options["max_unroll"] = max(objects, colliders, module.options.get("max_unroll", 0))
+    return wp.Kernel(grid_update, key=key, module=module)
 
 
 @wp.kernel(enable_backward=False)

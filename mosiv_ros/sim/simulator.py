@@ -417,8 +417,8 @@ class _State:
 class _Grid:
     """Grid arrays of one substep.
 
-    Per (batch, object, node) fields, per (batch, node) contact sums (only with several
-    objects), and the effects' per-particle stress. Kernels read them as ``grid_<name>``.
+    Per (batch, object, node) fields and the effects' per-particle stress. Kernels read them as
+    ``grid_<name>``.
 
     ``box`` is the box of nodes (lower corner, size) that the last substep on this grid ran over
     (``Simulator._active_box``; None before the first). Every write of a substep, and of its
@@ -428,52 +428,52 @@ class _Grid:
     the CPU ``zero`` and ``zero_grad`` clear that box only (about a tenth of the grid around a
     scene); elsewhere the box is the whole grid.
 
-    Without gradients the velocities ``v`` are the momenta ``p``, overwritten: the grid update
-    reads a node's momentum in the thread that writes its velocity, and nothing reads momenta
-    after it. At a node without mass the momentum is zero too (every particle adds its mass and
-    momentum with the same weight), so G2P reads what a zeroed ``v`` held, and a substep clears
-    a third less memory (on a GPU a search batch's grid is mostly empty nodes: the clearing was
-    a sixth of its substep). A tape needs the momenta for the adjoint, so there ``v`` has its own.
+    Without gradients and with one object the velocities ``v`` are the momenta ``p``,
+    overwritten: the grid update reads a node's momentum in the thread that writes its velocity,
+    and nothing reads momenta after it. At a node without mass the momentum is zero too (every
+    particle adds its mass and momentum with the same weight), so G2P reads what a zeroed ``v``
+    held, and a substep clears a third less memory (on a GPU a search batch's grid is mostly
+    empty nodes: the clearing was a sixth of its substep). A tape needs the momenta for the
+    adjoint, and with several objects the grid update of one field reads the momenta of the
+    others at its node (``kernels.grid_update``'s contact sums), so there ``v`` has its own.
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
                  stress: bool, device: str, requires_grad: bool, accelerated: bool = True,
                  memory: Memory | None = None) -> None:
         # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
-        (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
-         self.present_mu), self._values, self._grads = _arrays(
+        (self.m, self.p, self.a, self.v, self.tau), self._values, self._grads = _arrays(
             self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad), device,
             requires_grad, memory)
-        if not requires_grad:
+        if not self.own_velocities(n_objects, requires_grad):
             self.v = self.p
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
-        # the per-node arrays seen as grids: one per field, and one per batch (the contact sums)
-        self._field_grid = (n_batch * n_objects, *dims)
-        self._batch_grid = (n_batch, *dims) if n_objects > 1 else None
-        self._cleared: dict[bool, tuple[wp.array, list[np.ndarray], list[np.ndarray]]] = {}
+        self._field_grid = (n_batch * n_objects, *dims)  # the per-node arrays seen as grids, one per field
+        self._cleared: dict[bool, tuple[wp.array, list[np.ndarray]]] = {}
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-              stress: bool, accelerated: bool, velocities: bool) -> list[tuple[int, type]]:
+              stress: bool, accelerated: bool, requires_grad: bool) -> list[tuple[int, type]]:
         """The arrays' sizes and types.
 
         Accelerations and stresses only where an effect adds them, velocities apart from the
-        momenta only if ``velocities``.
+        momenta only where ``own_velocities``.
         """
-        n_nodes = int(np.prod(dims))
-        n_grid = n_batch * n_objects * n_nodes
-        n_contact = n_batch * n_nodes if n_objects > 1 else 1
+        n_grid = n_batch * n_objects * int(np.prod(dims))
+        velocities = _Grid.own_velocities(n_objects, requires_grad)
         return [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3),
-                (n_grid if velocities else 0, wp.vec3),
-                (n_particles if stress else 0, wp.mat33), (n_contact, float), (n_contact, wp.vec3),
-                (n_contact, float)]
+                (n_grid if velocities else 0, wp.vec3), (n_particles if stress else 0, wp.mat33)]
+
+    @staticmethod
+    def own_velocities(n_objects: int, requires_grad: bool) -> bool:
+        """Whether the velocities have an array of their own rather than overwrite the momenta (class docstring)."""
+        return requires_grad or n_objects > 1
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
         """The differentiable arrays (their gradients are zeroed between frames)."""
-        return (self.m, self.p, self.a, self.v, self.tau, self.present_m, self.present_p,
-                self.present_mu)
+        return self.m, self.p, self.a, self.v, self.tau
 
     def zero(self, box: tuple[tuple[int, ...], tuple[int, ...]]) -> None:
         """Zero every array for a substep that runs over ``box`` (see the class docstring)."""
@@ -494,38 +494,27 @@ class _Grid:
         """On the CPU: zero the stresses, and the per-node arrays (or their ``grads``) in ``box``."""
         if grads not in self._cleared:
             self._cleared[grads] = self._clearing(grads)
-        stress, grids, entries = self._cleared[grads]
+        stress, grids = self._cleared[grads]
         stress.zero_()
-        for entry in entries:
-            entry[...] = 0
         if self.box is not None:  # else as allocated
             lo, size = self.box
             inside = (slice(None), *(slice(start, start + n) for start, n in zip(lo, size, strict=True)))
             for grid in grids:
                 grid[inside] = 0
 
-    def _clearing(self, grads: bool) -> tuple[wp.array, list[np.ndarray], list[np.ndarray]]:
+    def _clearing(self, grads: bool) -> tuple[wp.array, list[np.ndarray]]:
         """What ``_zero`` clears of the values, or of their ``grads``.
 
-        The stress array, the per-node arrays as numpy views shaped as grids (made once: making
-        a view costs about what clearing a box does), and the single contact entry of one
-        object. Arrays no effect uses (empty) are left out.
+        The stress array and the per-node arrays as numpy views shaped as grids (made once:
+        making a view costs about what clearing a box does). Arrays no effect uses (empty) are
+        left out.
         """
         fields = [self.m, self.p, self.a] + ([self.v] if self.v is not self.p else [])
-        batch = [self.present_m, self.present_p, self.present_mu]
         if grads:
-            fields, batch = [a.grad for a in fields], [a.grad for a in batch]
-        grids, entries = [], []
-        for arrays, shape in ((fields, self._field_grid), (batch, self._batch_grid)):
-            for array in arrays:
-                if array.shape[0] == 0:
-                    continue
-                values = array.numpy()
-                if shape is None:
-                    entries.append(values)
-                else:
-                    grids.append(values.reshape(shape + values.shape[1:]))
-        return self.tau.grad if grads else self.tau, grids, entries
+            fields = [a.grad for a in fields]
+        grids = [values.reshape(self._field_grid + values.shape[1:])
+                 for values in (array.numpy() for array in fields if array.shape[0] > 0)]
+        return self.tau.grad if grads else self.tau, grids
 
 
 @dataclass
@@ -828,8 +817,10 @@ class Simulator:
         self.set_volume(particles.volume)
         self.set_initial_velocity(particles.v)
         self._setup_colliders()
-        # without colliders, the grid update without their code (``kernels._grid_update``)
-        self._grid_update = kernels.grid_update if self.config.colliders else kernels.grid_update_free
+        # the grid update for this many objects, without the colliders' code where there are none
+        self._grid_update = kernels.grid_update_for(kernels.MAX_COLLIDERS if self.config.colliders else 0,
+                                                    self.n_objects)
+        load_modules(self.device, [self._grid_update.module.name])
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
@@ -1205,8 +1196,6 @@ class Simulator:
         if self._box_args[0] != (box_lo, box_dims):  # the same objects while the box stays (``_run``)
             self._box_args = ((box_lo, box_dims), {"box_lo": wp.vec3i(*box_lo), "box_dims": wp.vec3i(*box_dims)})
         box = self._box_args[1]
-        if K > 1:
-            self._run(kernels.contact_totals, n_box, grid=grid, **box, own=self._steps)
         self._run(self._grid_update, n_box, grid=grid, collider=colliders or self._colliders, substep=row,
                   **box, own=self._steps)
         self._run(kernels.g2p, self._particle_threads, src=src, dst=dst, grid=grid, substep=row, own=self._steps)
