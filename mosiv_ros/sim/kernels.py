@@ -472,7 +472,11 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
         """Velocity of one object field at one node: effects, object contact, ground, colliders, walls.
 
         The object contact reads every field at the node: the count of fields present and the
-        largest of them (``present_fields``), and their sums.
+        largest of them (``present_fields``), and their sums of mass, momentum after the effects
+        (m v) and friction-weighted mass (mu m). A field is present when it holds more than
+        CONTACT_MASS_FRACTION of the node's mass: the far fringe of an object's kernel support,
+        and M-PhyGs boundary particles outside the surface (whose volume fades to 1e-4 of a
+        particle's), take no part in contact.
         """
         index = field_node(wp.tid(), box_lo, box_dims, dims)
         m = grid_m[index]
