@@ -459,7 +459,6 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
         collider_omega: wp.array(dtype=wp.vec3),
         substep: int,
         collider_count: int,
-        n_objects: int,
         n_nodes: int,
         dims: wp.vec3i,
         box_lo: wp.vec3i,
@@ -482,8 +481,8 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
         m = grid_m[index]
         if m <= 0.0:
             return  # no particle's stencil reads an empty field node; grid_v was zeroed (or is grid_p, zero here)
-        batch = index // (n_objects * n_nodes)
-        k = (index // n_nodes) % n_objects
+        batch = index // (objects * n_nodes)
+        k = (index // n_nodes) % objects
         node = index % n_nodes
         i = node // (dims[1] * dims[2])
         j = (node // dims[2]) % dims[1]
@@ -492,12 +491,12 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
         vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
 
         if wp.static(objects > 1):
-            first = batch * n_objects * n_nodes + node
-            present = node_total(grid_m, first, n_nodes, n_objects) * CONTACT_MASS_FRACTION
-            fields = present_fields(grid_m, first, n_nodes, n_objects, present, normal_rank)
+            first = batch * objects * n_nodes + node
+            present = node_total(grid_m, first, n_nodes, objects) * CONTACT_MASS_FRACTION
+            fields = present_fields(grid_m, first, n_nodes, objects, present, normal_rank)
             if fields[0] > 1 and m > present:
                 lead = ranked_object[fields[1]]
-                g_lead = mass_gradient(grid_m, (batch * n_objects + lead) * n_nodes, i, j, l, dims,
+                g_lead = mass_gradient(grid_m, (batch * objects + lead) * n_nodes, i, j, l, dims,
                                        1.0 / dx)
                 g_len = wp.length(g_lead)
                 if g_len > 0.0:
@@ -517,8 +516,8 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
                             m_total = m_total + m_other
                             p_total = p_total + field_velocity(grid_m, grid_p, grid_a, uniform, batch, at,
                                                                own_dt[batch]) * m_other
-                            mu_total = mu_total + param(friction, batch * n_objects + other, at) * m_other
-                    mu_k = param(friction, batch * n_objects + k, index)
+                            mu_total = mu_total + param(friction, batch * objects + other, at) * m_other
+                    mu_k = param(friction, batch * objects + k, index)
                     mu_pair = 0.5 * (mu_k + (mu_total - mu_k * m) / (m_total - m))
                     v_cm = divide(p_total, m_total)
                     rel = vel - v_cm
