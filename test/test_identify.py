@@ -393,7 +393,7 @@ def test_tensor_terms_of_rows_together_equal_each_row_alone_and_the_frame_by_fra
     frames = slice(1, 4)
 
     def terms(rows):
-        found = tensor_terms(torch.as_tensor(x[rows], device=DEVICE), torch.as_tensor(visible[rows], device=DEVICE),
+        found = tensor_terms(torch.as_tensor(x[rows], device=DEVICE), visible[rows],
                              index, obs.tensors(DEVICE), obs.object_ids, frames, loss, 0.005)
         return Terms(*(getattr(found, f.name).cpu() for f in fields(Terms)))
 
@@ -489,8 +489,9 @@ def test_the_search_scores_the_objective_adam_minimises_silhouettes_included():
 
 @CPU_KERNELS
 def test_the_fit_and_the_search_score_the_same_as_tensors_as_frame_by_frame():
-    # the GPU's path (every frame and row at once, as tensors) run on the CPU against the CPU's
-    # (KD-trees, frame by frame, row by row): the same window loss and gradient, the same scores.
+    # the GPU's path (every frame and row at once, as tensors queued behind the rollout) run on the
+    # CPU against the CPU's (KD-trees, frame by frame, row by row): the same window loss and
+    # gradient, the same scores.
     # Thrown sideways: a mirror-symmetric motion ties nearest neighbours, which the two break apart
     problem = _seen_from_above(_cube_problem({"E": 2e4, "nu": 0.3}, {"E": 6e4, "nu": 0.3}, ["E", "nu"],
                                              frames=5, observed_points=60, velocity=(0.4, 0.13, -0.5))[0])

@@ -369,7 +369,7 @@ def test_cuda_graph_replays_give_the_rollouts_and_gradients_of_single_launches()
     dx, floor = 0.02, 0.1
     finger = Collider("sphere", (0.04,), np.array([0.0, 0.5]),
                       np.array([[0.1, 0.2, floor + 0.03], [0.6, 0.2, floor + 0.03]]), friction=0.5)
-    moduli = (1e5, 1e5, 2e5, 2e5, 1e5)  # graphs: captured on each key's second run, replayed after
+    moduli = (1e5, 1e5, 2e5, 2e5, 1e5)  # graphs: captured on a key's first run (after its kind's first), replayed after
     results = {}
     for graphs in (False, True):
         sim = scene([box((0.25, 0.2, floor + 0.03), (0.03, 0.03, 0.03), dx / 2)],
@@ -444,6 +444,46 @@ def test_cell_order_is_invisible_to_callers():
     assert np.abs(g1.volume - g0.volume).max() < 1e-4 * np.abs(g0.volume).max()
     for name in ("E", "nu", "yield_stress", "density", "friction"):
         assert g1.params[name] == pytest.approx(g0.params[name], rel=1e-3, abs=1e-9), name
+
+
+@pytest.mark.parametrize("order", [False, True])
+def test_a_queued_rollout_and_a_gradient_on_the_device_give_what_the_host_gets(order):
+    # The fit's loss on a GPU reads a queued rollout's positions where they are and hands dL/dx
+    # back there (identify.fit). Sorted by cell, both pass through the callers' order.
+    dx, floor = 0.02, 0.1
+    solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
+                                                                   (0.03, 0.04, 0.03), dx / 2)]
+    objects = [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
+    sim = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3), ground=Ground(height=floor),
+                velocities=[(0.5, 0.0, -1.0), (0.0, 0.0, 0.0)], n_batch=2, cell_order=order)
+    assert (sim._order is not None) == order
+    traj = sim.rollout(4, grad=True)
+    dL = np.random.default_rng(5).normal(size=traj.shape).astype(np.float32)
+    expected = sim.backward(dL)
+    queued = sim.queue_rollout(4, grad=True)
+    queued.wait()
+    exact = DEVICE == "cpu"  # on a GPU float atomics add in no fixed order
+    positions = queued.positions.numpy().reshape(traj.shape)
+    assert np.array_equal(positions, traj) if exact else np.abs(positions - traj).max() < 1e-6
+    got = sim.backward(wp.array(dL.reshape(-1, 3), dtype=wp.vec3, device=sim.device))
+    for a, b in ((got.v0, expected.v0), (got.volume, expected.volume),
+                 *((got.params[name], expected.params[name]) for name in ("E", "nu", "yield_stress"))):
+        np.testing.assert_allclose(a, b, rtol=0 if exact else 1e-4, atol=0 if exact else 1e-6 * np.abs(b).max())
+    stale = sim.queue_rollout(2, grad=True)
+    sim.rollout(2, grad=True)
+    with pytest.raises(RuntimeError, match="next rollout"):
+        stale.wait()
+    with pytest.raises(ValueError, match="wp.vec3"):
+        sim.backward(wp.zeros(5, dtype=wp.vec3, device=sim.device))
+
+
+def test_a_queued_rollout_that_diverges_says_so_by_its_wait_at_the_latest():
+    sim = falling_ball("elastic", {"E": 3e4}, effects=(AntiDrag(rate=400.0),))
+    with pytest.raises(SimulationDiverged) as raised:
+        sim.queue_rollout(20, grad=True).wait()
+    assert raised.value.object_name == "ball"
+    with pytest.raises(RuntimeError, match="preceding rollout"):
+        sim.backward(np.zeros((21, 1, sim.n_particles, 3)))
 
 
 def test_the_default_sorts_scattered_particles_and_keeps_a_lattice():

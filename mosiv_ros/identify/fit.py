@@ -56,6 +56,8 @@ from mosiv_ros.identify.curriculum import Adam, Curriculum, FitState
 from mosiv_ros.identify.losses import (
     calibrated_splat_radius,
     geometry_loss,
+    queued_gradient,
+    queued_positions,
     silhouette_losses,
     tensor_terms,
     torch_threads,
@@ -226,7 +228,9 @@ class Identifier:
         self.centre0 = np.stack([problem.particles.x[self.index == k].mean(axis=0)
                                  for k in range(len(problem.objects))])
         self.observed_centroids = obs.centroids()
-        self.timing: dict[str, float] = {}  # of the last window: forward_s, loss_s, backward_s
+        self.timing: dict[str, float] = {}
+        """Of the last window: forward_s, loss_s, backward_s. On a GPU the loss is queued behind the
+        rollout (``window_losses``): forward_s holds both, and loss_s the host's part of it."""
         self.torch_device = self.sim.device if self.sim.device.startswith("cuda") else "cpu"
         self.splat_radius = self._splat_radius()
         """(K,) radius (m) of each object's particle splats in the silhouette loss (``_splat_radius``)."""
@@ -397,17 +401,30 @@ class Identifier:
         """
         obs = self.problem.observations
         tick = time.perf_counter()
-        traj = sim.rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
-        self.timing = {"forward_s": time.perf_counter() - tick}
-        tick = time.perf_counter()
-        totals, dL, pers = self._loss_of(traj, start, inside, grad)
-        self.timing["loss_s"] = time.perf_counter() - tick
+        if self.tensor_device is None:
+            traj = sim.rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
+            self.timing = {"forward_s": time.perf_counter() - tick}
+            tick = time.perf_counter()
+            totals, dL, pers = self._loss_of(traj, start, inside, grad)
+            self.timing["loss_s"] = time.perf_counter() - tick
+        else:  # the loss queued behind the rollout, its host work done while the device simulates
+            queued = sim.queue_rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
+            queued_at = time.perf_counter()
+            x = queued_positions(queued.positions, sim.n_batch, sim.n_particles, self.tensor_device)
+            terms = self._tensor_window(x, start, inside, grad)
+            self.timing = {"loss_s": time.perf_counter() - queued_at}
+            queued.wait()
+            self.timing["forward_s"] = time.perf_counter() - tick
+            dL = queued_gradient(terms[2], self.tensor_device) if grad else None
+        if grad:
+            tick = time.perf_counter()
+            grads = sim.backward(dL)
+            self.timing["backward_s"] = time.perf_counter() - tick
+        if self.tensor_device is not None:  # read once the backward is queued behind the loss
+            totals, pers = (value.cpu().numpy() for value in terms[:2])
         if not grad:
             return [(float(total), np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per)
                     for total, per in zip(totals, pers, strict=True)]
-        tick = time.perf_counter()
-        grads = sim.backward(dL)
-        self.timing["backward_s"] = time.perf_counter() - tick
         boundary = self.problem.boundary
         results = []
         for row, (u, total, per) in enumerate(zip(points, totals, pers, strict=True)):
@@ -471,22 +488,33 @@ class Identifier:
     def _tensor_loss(self, traj: np.ndarray, start: int, inside: np.ndarray,
                      grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``_loss_of``, every row at once, as tensors on ``tensor_device``; dL/dx by autograd (or zeros)."""
-        obs, loss, device = self.problem.observations, self.settings.loss, self.tensor_device
-        length = len(traj) - 1
+        x = torch.as_tensor(traj[1:], device=self.tensor_device).transpose(0, 1)
+        total, per, dx = self._tensor_window(x.to(torch.float64, memory_format=torch.contiguous_format),
+                                             start, inside, grad)
         dL = np.zeros(traj.shape, dtype=np.float64)
+        if grad:
+            dL[1:] = dx.transpose(0, 1).cpu().numpy()
+        return total.cpu().numpy(), dL, per.cpu().numpy()
+
+    def _tensor_window(self, x: torch.Tensor, start: int, inside: np.ndarray,
+                       grad: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Each row's loss (R,), per-object losses (R, K) and dL/dx (or None) of ``x``, as tensors.
+
+        ``x`` (R, F, N, 3) float64 the rows' particles at frames ``start`` + 1.. on
+        ``tensor_device``. Nothing here waits for the device (``tensor_terms``).
+        """
+        obs, loss, device = self.problem.observations, self.settings.loss, self.tensor_device
+        length = x.shape[1]
         with torch_threads(device), torch.set_grad_enabled(grad):
-            x = torch.tensor(traj[1:].transpose(1, 0, 2, 3), dtype=torch.float64, device=device,
-                             requires_grad=grad)
-            terms = tensor_terms(x, torch.as_tensor(inside, device=device), self.index,
-                                 obs.tensors(device), obs.object_ids, slice(start + 1, start + length + 1),
-                                 loss, self.splat_radius)
+            x.requires_grad_(grad)
+            terms = tensor_terms(x, inside, self.index, obs.tensors(device), obs.object_ids,
+                                 slice(start + 1, start + length + 1), loss, self.splat_radius)
             total = (loss.chamfer_weight * terms.chamfer_total.sum(dim=1) + loss.silhouette_weight
                      * terms.silhouette.sum(dim=1) + loss.track_weight * terms.track.sum(dim=(1, 2))) / length
             per = (terms.chamfer.nan_to_num().sum(dim=1) + loss.track_weight * terms.track.sum(dim=1)) / length
             if grad:
                 total.sum().backward()
-                dL[1:] = x.grad.transpose(0, 1).cpu().numpy()
-        return total.detach().cpu().numpy(), dL, per.detach().cpu().numpy()
+        return total.detach(), per.detach(), x.grad if grad else None
 
     # --- the fit -----------------------------------------------------------------------------
 

@@ -413,6 +413,48 @@ def track_terms(x: torch.Tensor, tracks: TrackTensors, frames: slice, scale: flo
     return (share * scale**2 * (root - 1.0)) @ objects
 
 
+def _uploaded(values: object, device: torch.device, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """Host ``values`` (array-like) as a tensor on ``device``, the copy queued without waiting for the device.
+
+    torch copies from pageable host memory only once the device's queued work is done; from
+    page-locked memory it queues the copy. The loss's terms rely on it to be queued behind the
+    rollout that computes their particles (``tensor_terms``).
+    """
+    values = torch.tensor(np.asarray(values), dtype=dtype)  # a copy: the caller's array may change
+    return values if device.type == "cpu" else values.pin_memory().to(device, non_blocking=True)
+
+
+def queued_positions(positions: wp.array, rows: int, particles: int, device: str) -> torch.Tensor:
+    """(R, F, N, 3) float64 on ``device``: a queued rollout's positions (``Simulator.queue_rollout``) less frame 0.
+
+    ``positions`` ((F + 1) R N,) ``wp.vec3`` on the same device. On a GPU torch's stream is
+    made to wait for the simulator's first, so nothing here waits for the device. Non-finite
+    values (a rollout that diverged, which its wait then reports) become 0, so that the terms
+    queued behind it stay in bounds.
+    """
+    if device != "cpu":
+        wp.stream_from_torch(torch.cuda.current_stream(torch.device(device))).wait_stream(
+            wp.get_stream(positions.device))
+    frames = positions.shape[0] // (rows * particles)
+    x = wp.to_torch(positions).view(frames, rows, particles, 3)[1:].transpose(0, 1)
+    return torch.nan_to_num(x.to(torch.float64, memory_format=torch.contiguous_format), 0.0, 0.0, 0.0)
+
+
+def queued_gradient(dx: torch.Tensor, device: str) -> wp.array:
+    """dL/dx (R, F, N, 3) as ``Simulator.backward`` takes it on the device: ((F + 1) R N,) ``wp.vec3``, frame 0 zero.
+
+    On a GPU the simulator's stream is made to wait for torch's, which computes it.
+    """
+    rows, frames, particles = dx.shape[:3]
+    out = dx.new_zeros((frames + 1, rows, particles, 3), dtype=torch.float32)
+    out[1:] = dx.transpose(0, 1)
+    gradient = wp.from_torch(out.view(-1, 3), dtype=wp.vec3)
+    if device != "cpu":
+        wp.get_stream(gradient.device).wait_stream(
+            wp.stream_from_torch(torch.cuda.current_stream(torch.device(device))))
+    return gradient
+
+
 @dataclass
 class Terms:
     """The loss terms of R rows (parameter sets) over F frames, as tensors.
@@ -431,26 +473,28 @@ class Terms:
     silhouette: torch.Tensor
 
 
-def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarray,
+def tensor_terms(x: torch.Tensor, inside: np.ndarray, object_index: np.ndarray,
                  observed: ObservedTensors, object_ids: list[int], frames: slice, loss: LossConfig,
                  splat_radius: float | np.ndarray) -> Terms:
     """Every loss term of R rows of particles at once, on the particles' device.
 
-    ``x`` (R, F, N, 3) float64 the particles at ``frames`` of ``observed``; ``visible`` (R, N)
-    those inside each row's surface, which the Chamfer and silhouette terms score (the track
-    term reads every particle); ``object_index`` (N,) each one's object. The same terms as
-    ``geometry_loss``, ``silhouette_losses`` and ``track_loss`` (to float64 rounding; a nearest
-    neighbour tie may be broken otherwise) for every row and frame, without a KD-tree or a
-    round trip to the host per frame.
+    ``x`` (R, F, N, 3) float64 the particles at ``frames`` of ``observed``; ``inside`` (R, N)
+    on the host, those inside each row's surface, which the Chamfer and silhouette terms score
+    (the track term reads every particle); ``object_index`` (N,) each one's object. The same
+    terms as ``geometry_loss``, ``silhouette_losses`` and ``track_loss`` (to float64 rounding; a
+    nearest neighbour tie may be broken otherwise) for every row and frame, without a KD-tree or
+    a round trip to the host per frame. Nothing here waits for the device, so that on a GPU the
+    terms can be queued behind the rollout that computes ``x`` (``identify.fit``).
     """
     rows, n_frames = x.shape[:2]
+    visible = _uploaded(inside, x.device)
     n_objects = len(object_ids)
     zeros = x.new_zeros((rows, n_frames, n_objects))
     chamfer = torch.full_like(zeros, math.nan)
     if loss.per_object:
         total = zeros[..., 0]
         for k in range(n_objects):
-            mine = torch.as_tensor(np.flatnonzero(object_index == k), device=x.device)
+            mine = _uploaded(np.flatnonzero(object_index == k), x.device)
             if len(mine):
                 values, scored = _chamfer_rows(x[:, :, mine], visible[:, mine], observed, k, frames)
                 chamfer[..., k] = torch.where(scored, values, math.nan)
@@ -464,8 +508,9 @@ def tensor_terms(x: torch.Tensor, visible: torch.Tensor, object_index: np.ndarra
     if loss.silhouette_weight > 0 and observed.masks is not None:
         shown = np.arange(len(observed.masks.frame_weight))[frames]
         pixels = observed.masks.pixels(n_objects if loss.per_object else 1)
-        for chunk, part in _splat_chunks(visible.sum(dim=1).tolist(), n_frames, str(x.device), pixels):
-            silhouette = silhouette.index_add(0, torch.as_tensor(chunk, device=x.device), _silhouette_batch(
+        for chunk, part in _splat_chunks(inside.sum(axis=1).tolist(), n_frames, str(x.device), pixels):
+            chunk = _uploaded(chunk, x.device)  # indexing by a list would upload it and wait
+            silhouette = silhouette.index_add(0, chunk, _silhouette_batch(
                 x[chunk, part], visible[chunk], object_index, object_ids, observed.masks, shown[part],
                 splat_radius, loss.per_object))
     return Terms(chamfer, total, track, silhouette)
@@ -749,11 +794,11 @@ def _silhouette_batch(x: torch.Tensor, visible: torch.Tensor | None, object_inde
     views = tuple(v for v in range(len(masks.views)) if masks.framed[v][frames].any())
     if not views or not n_particles:
         return x.new_zeros((rows, n_groups))
-    index = torch.as_tensor(object_index, dtype=torch.int64, device=device)
-    radius = torch.as_tensor(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)).copy(),
-                             device=device)[index]  # (N,) each particle's object's
+    index = _uploaded(object_index, device, torch.int64)
+    radius = _uploaded(np.broadcast_to(np.asarray(splat_radius, dtype=np.float64), (len(object_ids),)),
+                       device)[index]  # (N,) each particle's object's
     group = index if per_object else torch.zeros_like(index)
-    shown = torch.as_tensor(frames, device=device)
+    shown = _uploaded(frames, device)
     world_to_optical, K, size, framed = masks.cameras(views)
     uv, z, front = _splat_centres(x[:, :, None], world_to_optical, K)  # (R, F, V, N, ...)
     sigma = torch.clamp(K[:, 0, 0, None] * radius / z, min=0.5)

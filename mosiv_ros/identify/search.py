@@ -51,6 +51,7 @@ import torch
 
 from mosiv_ros.identify.losses import (
     geometry_loss,
+    queued_positions,
     silhouette_object_losses,
     tensor_terms,
     torch_threads,
@@ -242,19 +243,25 @@ class GlobalSearch:
         ``own``: each row at its own time step. Returns the rows' losses, their per-object shares
         and (rollout, scoring) seconds.
         """
-        obs = self.identifier.problem.observations
+        fit = self.identifier
+        obs = fit.problem.observations
         n = batch.n_batch
         tick = time.perf_counter()
         try:
+            if fit.tensor_device is not None:  # scored behind the rollout on the device, then waited for
+                queued = batch.queue_rollout(frames, substeps=substeps, own_steps=own)
+                scores = self._tensor_scores(queued_positions(queued.positions, n, batch.n_particles,
+                                                              fit.tensor_device), inside, frames)
+                queued.wait()
+                rolled = time.perf_counter()
+                total, per = (value.cpu().numpy() for value in scores)
+                return total, per, (rolled - tick, time.perf_counter() - rolled)
             traj = batch.rollout(frames, substeps=substeps, own_steps=own)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
         rolled = time.perf_counter()
-        if self.identifier.tensor_device is not None:
-            total, per = self._tensor_scores(traj, inside, frames)
-        else:
-            total, per = self._frame_scores(traj, inside, frames)
+        total, per = self._frame_scores(traj, inside, frames)
         return total, per, (rolled - tick, time.perf_counter() - rolled)
 
     def _frame_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -294,19 +301,22 @@ class GlobalSearch:
                 per[b] += silhouette  # NaN stays NaN: the scene-level loss has no shares
         return total, per
 
-    def _tensor_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
-        """``_frame_scores`` of every row and frame at once, as tensors on ``tensor_device``."""
+    def _tensor_scores(self, x: torch.Tensor, inside: np.ndarray, frames: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """``_frame_scores`` of every row and frame at once, as tensors on ``tensor_device``.
+
+        ``x`` (B, F, N, 3) float64 the rows' particles at frames 1..``frames`` there; nothing here
+        waits for the device (``tensor_terms``).
+        """
         fit = self.identifier
         obs, loss, device = fit.problem.observations, fit.settings.loss, fit.tensor_device
         with torch_threads(device), torch.no_grad():
-            x = torch.as_tensor(traj[1:frames + 1], device=device).to(torch.float64).transpose(0, 1)
-            terms = tensor_terms(x, torch.as_tensor(inside, device=device), fit.index, obs.tensors(device),
+            terms = tensor_terms(x, inside, fit.index, obs.tensors(device),
                                  obs.object_ids, slice(1, frames + 1), loss, fit.splat_radius)
             shares = loss.silhouette_weight / frames * terms.silhouette
             total = ((loss.chamfer_weight * terms.chamfer_total + loss.track_weight * terms.track.sum(dim=2))
                      .mean(dim=1) + shares.sum(dim=1))
             per = (loss.chamfer_weight * terms.chamfer + loss.track_weight * terms.track).mean(dim=1) + shares
-        return total.cpu().numpy(), per.cpu().numpy()
+        return total, per
 
     def box(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper coordinates the first round samples around ``u`` (module docstring)."""

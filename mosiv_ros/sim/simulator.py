@@ -14,8 +14,8 @@ On a CUDA device a frame's substeps are hundreds of small kernel launches, and a
 counts of an identification (thousands) launching them from Python costs more than running
 them. So a frame's substeps (forward) and their adjoints (backward) run as CUDA graphs of runs
 of substeps that frames of every substep count share (``graph_runs``), each captured on its
-second run and replayed from then on; the arrays a graph touches live as long as the simulator
-(``SimConfig.cuda_graphs`` turns this off).
+first run (after its kind's first, which loads the kernels) and replayed from then on; the
+arrays a graph touches live as long as the simulator (``SimConfig.cuda_graphs`` turns this off).
 
 Time step: ``n`` equal substeps per frame, the fewest that keep dt below the CFL bound
 ``cfl * dx / (c + max_speed)`` (c the largest elastic or acoustic wave speed over objects and
@@ -191,6 +191,22 @@ class Gradients:
     params: dict[str, np.ndarray]
     v0: np.ndarray
     volume: np.ndarray
+
+
+@dataclass
+class QueuedRollout:
+    """A rollout queued on the simulator's device and not yet waited for (``Simulator.queue_rollout``).
+
+    ``positions``: ((F + 1) B N,) ``wp.vec3`` on the simulator's device, frame-major, then row,
+    then particle, in the callers' order: what ``rollout`` returns, there. Work queued after the
+    rollout on the simulator's stream, or on a stream made to wait for it, reads the values.
+    ``wait()`` waits for the rollout, raises ``SimulationDiverged`` where ``rollout`` would, and
+    makes it the simulator's last rollout (for ``backward`` and ``last_state``); it must come
+    before the simulator's next rollout.
+    """
+
+    positions: wp.array
+    wait: Callable[[], None]
 
 
 SORT_BELOW = 0.25
@@ -608,6 +624,15 @@ def graph_runs(n_sub: int) -> list[tuple[int, int]]:
     return runs
 
 
+def _graph_kind(key: tuple) -> tuple:
+    """The kind of a graph's key (``Simulator._launch``): what it runs, less the substeps it runs them on.
+
+    Keys of one kind launch the same kernels: ("kept", 0, 32) and ("kept", 160, 16) are both
+    ("kept",), runs of recorded substeps; ("kept", "head", 183) is ("kept", "head").
+    """
+    return key[:2] if isinstance(key[1], str) else key[:1]
+
+
 def _block_warps(n: int) -> int:
     """Warps of ``n`` particles a block on a GPU (``Simulator._spread``).
 
@@ -730,6 +755,15 @@ def _to_callers(x: wp.array(dtype=wp.vec3), order: wp.array(dtype=int), n_partic
 
 
 @wp.kernel
+def _from_callers(values: wp.array(dtype=wp.vec3), order: wp.array(dtype=int), n_particles: int,
+                  out: wp.array(dtype=wp.vec3)):
+    """Per-particle vectors from the callers' order into the simulator's (``_to_callers`` undone)."""
+    i = wp.tid()
+    first = (i // n_particles) * n_particles
+    out[i] = values[first + order[i - first]]
+
+
+@wp.kernel
 def _add_vec3(a: wp.array(dtype=wp.vec3), b: wp.array(dtype=wp.vec3), out: wp.array(dtype=wp.vec3)):
     i = wp.tid()
     out[i] = a[i] + b[i]
@@ -842,13 +876,16 @@ class Simulator:
         self._accelerated = any(e.has_accelerate for e in self.effects)
         self._record: dict | None = None
         self._final: _State | None = None
+        self._queued = 0
+        """Rollouts queued so far: a ``QueuedRollout`` waited for after a later one is refused."""
         self._buffers: tuple[list[_State], _Grid] | None = None
         self._tape_buffers: list[_FrameTape] | None = None
         self._adjoint_buffers: tuple[_State, wp.array] | None = None
         self._kept: list[wp.array] = []
         self._use_graphs = bool(config.cuda_graphs) and self.device.startswith("cuda")
         self._graphs: dict[tuple, wp.context.Graph] = {}
-        self._seen: set[tuple] = set()
+        self._loaded: set[tuple] = set()
+        """The kinds of graph (``_graph_kind``) whose kernels a run has loaded (``_launch``)."""
         self._commands: dict[tuple, _Command] = {}
         self._box_args: tuple[tuple | None, dict[str, wp.vec3i]] = (None, {})
         """The last substep's box of grid nodes, and the launch arguments that give it."""
@@ -1438,16 +1475,21 @@ class Simulator:
     def _launch(self, key: tuple, body: Callable[[], None]) -> None:
         """Run ``body`` (device work on the simulator's long-lived arrays only).
 
-        With CUDA graphs, the first run of a ``key`` launches its kernels one by one (which
-        also loads them); the second captures them as a graph, which it and later runs replay.
+        With CUDA graphs, the first run of a kind of graph (``_graph_kind``) launches its kernels
+        one by one, which also loads them (a module cannot load during a capture); every key
+        after it, of that kind, is captured as a graph on its first run, which it and later runs
+        replay. A fit meets new keys as its substeps change (``graph_runs``); captured where they
+        are first seen, each costs the host one recording instead of a run one launch at a time
+        and then a recording (docs/simulator.md, "CUDA graphs").
         """
         if not self._use_graphs:
             body()
             return
         graph = self._graphs.get(key)
         if graph is None:
-            if key not in self._seen:
-                self._seen.add(key)
+            kind = _graph_kind(key)
+            if kind not in self._loaded:
+                self._loaded.add(kind)
                 body()
                 return
             # No garbage collection while capturing: collecting another simulator's graph
@@ -1472,7 +1514,6 @@ class Simulator:
         """
         for key in [key for key in self._graphs if key[0] in kinds]:
             del self._graphs[key]
-        self._seen = {key for key in self._seen if key[0] not in kinds}
         self._commands.clear()
         self._adjoint_commands.clear()
         self._written_commands.clear()
@@ -1517,6 +1558,15 @@ class Simulator:
 
     def _initial_state(self, state: _State) -> None:
         self._run(_init_state, self.n_batch * self.n_particles, state=state)
+
+    def _seed_from(self, values: wp.array, frame: int, seed: wp.array) -> None:
+        """Copy frame ``frame`` of ``values`` (frames of B N ``wp.vec3``, the callers' order) into ``seed``, in ours."""
+        n = self.n_batch * self.n_particles
+        if self._order is None:
+            wp.copy(seed, values, src_offset=frame * n, count=n)
+        else:
+            wp.launch(_from_callers, dim=n, inputs=[values[frame * n:(frame + 1) * n], self._order_wp,
+                                                    self.n_particles], outputs=[seed], device=self.device)
 
     def _keep_positions(self, state: _State, positions: wp.array, frame: int) -> None:
         """Copy ``state``'s positions, in the callers' order, into ``frame``'s of ``positions``."""
@@ -1575,6 +1625,27 @@ class Simulator:
         gradients that row alone would have. Not with ``substeps``, and only where
         ``own_steps_allowed``.
         """
+        self._queue_rollout(n_frames, grad, check, substeps, initial, start_frame, progress, own_steps,
+                            download=True).wait()
+        return self._staging.collect().reshape(n_frames + 1, self.n_batch, self.n_particles, 3)
+
+    def queue_rollout(self, n_frames: int, *, grad: bool = False, check: bool = True,
+                      substeps: int | None = None, initial: SimState | None = None,
+                      start_frame: int = 0, own_steps: bool = False) -> QueuedRollout:
+        """``rollout``, queued: its positions stay on the device, and nothing waits for them here.
+
+        On a GPU the host goes on while the device computes, so that a caller can queue what
+        reads the positions (the fit's loss, ``identify.fit``) behind the rollout before waiting
+        for it (``QueuedRollout.wait``); a frame's check is read there, not here. On the CPU the
+        rollout has run when this returns, and it stops at the frame that diverged.
+        """
+        return self._queue_rollout(n_frames, grad, check, substeps, initial, start_frame, None, own_steps,
+                                   download=False)
+
+    def _queue_rollout(self, n_frames: int, grad: bool, check: bool, substeps: int | None,
+                       initial: SimState | None, start_frame: int, progress, own_steps: bool,
+                       download: bool) -> QueuedRollout:
+        """``queue_rollout``; ``download``: the positions are copied to the host as they come (``_staging``)."""
         self.params.validate()
         if own_steps:
             if substeps is not None:
@@ -1607,7 +1678,8 @@ class Simulator:
                          dtype=float, device=self.device)
         early = self.device == "cpu" or progress is not None
         self._keep_positions(states[0], positions, 0)
-        self._staging.stage(positions)
+        if download:
+            self._staging.stage(positions)
         kept = self._kept_frames(n_frames, n_sub) if grad else None
         checkpoints = [] if kept or not grad else [_clone(states[0])]
         state, current = states[0], 0
@@ -1632,26 +1704,35 @@ class Simulator:
                 if early:
                     self._diverged(frame_stats.numpy(), start_frame + frame + 1, dt)
             self._keep_positions(state, positions, frame + 1)
-            self._staging.part((frame + 2) * B * N)  # copied to the host while the next frame runs
+            if download:
+                self._staging.part((frame + 2) * B * N)  # copied to the host while the next frame runs
             if grad:
                 checkpoints.append(state if kept else _clone(state))
             if progress is not None:
                 progress(frame + 1)
-        if check and not early:
-            for frame, frame_stats in enumerate(stats.numpy().reshape(n_frames, row)):
-                self._diverged(frame_stats, start_frame + frame + 1, dt)
-        out = self._staging.collect().reshape(n_frames + 1, B, N, 3)
-        self._record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt, "substeps": row_substeps,
-                         "start_frame": start_frame, "kept": kept} if grad else None)
-        self._final = state
-        _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
-                   n_frames, n_sub, np.min(dt), N, B)
-        return out
+        record = ({"checkpoints": checkpoints, "n_sub": n_sub, "dt": dt, "substeps": row_substeps,
+                   "start_frame": start_frame, "kept": kept} if grad else None)
+        self._queued += 1
+        token = self._queued
 
-    def backward(self, dL_dx: np.ndarray) -> Gradients:
+        def wait() -> None:
+            if token != self._queued:
+                raise RuntimeError("a queued rollout was waited for after the simulator's next rollout")
+            if check and not early:
+                for frame, frame_stats in enumerate(stats.numpy().reshape(n_frames, row)):
+                    self._diverged(frame_stats, start_frame + frame + 1, dt)
+            self._record, self._final = record, state
+            _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
+                       n_frames, n_sub, np.min(dt), N, B)
+
+        return QueuedRollout(positions, wait)
+
+    def backward(self, dL_dx: np.ndarray | wp.array) -> Gradients:
         """Gradients of a loss L given dL/dx at every frame of the last ``grad=True`` rollout.
 
-        ``dL_dx`` is (F + 1, B, N, 3) like the positions ``rollout`` returned.
+        ``dL_dx`` is (F + 1, B, N, 3) like the positions ``rollout`` returned, or ((F + 1) B N,)
+        ``wp.vec3`` on the simulator's device like ``QueuedRollout.positions``, read there after
+        the work queued on the simulator's stream so far (nothing then waits for the host).
         """
         if self._record is None:
             raise RuntimeError("backward() needs a preceding rollout(..., grad=True)")
@@ -1659,9 +1740,16 @@ class Simulator:
             self._record[k] for k in ("checkpoints", "n_sub", "dt", "substeps", "start_frame"))
         n_frames = len(checkpoints) - 1
         B, N = self.n_batch, self.n_particles
-        dL_dx = np.asarray(dL_dx, dtype=np.float32)
-        if dL_dx.shape != (n_frames + 1, B, N, 3):
-            raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
+        on_device = isinstance(dL_dx, wp.array)
+        if on_device:
+            size = (n_frames + 1) * B * N
+            if dL_dx.dtype != wp.vec3 or dL_dx.shape != (size,) or dL_dx.device != wp.get_device(self.device):
+                raise ValueError(f"dL_dx on the device must be {size} wp.vec3 on {self.device}, "
+                                 f"not {dL_dx.shape} {wp.types.type_repr(dL_dx.dtype)} on {dL_dx.device}")
+        else:
+            dL_dx = np.asarray(dL_dx, dtype=np.float32)
+            if dL_dx.shape != (n_frames + 1, B, N, 3):
+                raise ValueError(f"dL_dx has shape {dL_dx.shape}, expected {(n_frames + 1, B, N, 3)}")
         adjoint, seed = self._adjoint_state()
         self._set_steps(dt, substeps)
         self.params.zero_grad()
@@ -1669,12 +1757,16 @@ class Simulator:
         for array in adjoint.arrays:
             array.zero_()
 
-        # each frame's dL/dx staged apart, so that the host stages the next while the device runs
-        # this frame's adjoint
-        self._staging.reserve(wp.vec3, n_frames * B * N)
+        if on_device:
+            def seeded(index: int) -> None:
+                self._seed_from(dL_dx, index + 1, seed)
+        else:
+            # each frame's dL/dx staged apart, so that the host stages the next while the device
+            # runs this frame's adjoint
+            self._staging.reserve(wp.vec3, n_frames * B * N)
 
-        def seeded(index: int) -> None:
-            self._staging.put(self._inward(dL_dx[index + 1]).reshape(-1, 3), wp.vec3, seed, index * B * N)
+            def seeded(index: int) -> None:
+                self._staging.put(self._inward(dL_dx[index + 1]).reshape(-1, 3), wp.vec3, seed, index * B * N)
 
         frames = self._tape_buffers_for(n_sub)
 
