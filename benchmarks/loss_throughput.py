@@ -11,15 +11,17 @@ velocities) and times:
 
 - ``window``: ``Identifier.window_loss`` over the whole fitted window with its gradient, split
   as the fit's history splits an iteration (``Identifier.timing``: simulation forward, loss,
-  backward); two untimed calls first (kernel compilation, CUDA graph capture);
+  backward; on a GPU the loss is queued behind the forward, whose time then holds it, and the
+  loss's is the host's part); two untimed calls first (kernel compilation, CUDA graph capture);
 - ``window_torch_ops``: the torch operations one such call issues on the tensor path (host work
   on a GPU grows with them; the CPU's count is higher: it renders the silhouettes in smaller
   batches, ``losses.SPLAT_BATCH``);
 - ``search``: ``GlobalSearch.batch_object_losses`` of ``--rows`` candidate rows drawn uniformly
   from the search's first box (``GlobalSearch.box``: the material parameters' prior ranges),
   as the search scores them by default (on a GPU one batch at the stiffest row's time step, on
-  the CPU each row at its own), split into rollout and scoring (``GlobalSearch.timing``); one
-  untimed call first.
+  the CPU each row at its own), split into rollout and scoring (``GlobalSearch.timing``; on a
+  GPU the scoring is queued behind the rollout, whose time then holds it); one untimed call
+  first.
 
 The losses are computed as the identifier chooses (``Identifier.tensor_device``: as tensors on
 a GPU, by KD-trees on the CPU); ``--compare`` times both paths on the same device, interleaved

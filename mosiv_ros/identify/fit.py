@@ -25,7 +25,8 @@ What the identifier itself does:
   found at rest keeps a zero initial velocity; the others' are refined with the parameters);
 - the objective (``window_loss``): Chamfer, silhouette and surface track terms over a window of
   frames, and their gradients with respect to the coordinates and the initial velocities; on a
-  GPU all frames at once as tensors there (``tensor_device``), on the CPU frame by frame;
+  GPU all frames at once as tensors there (``tensor_device``), queued behind the rollout
+  (``window_losses``), on the CPU frame by frame;
 - the result is the lowest whole-window loss among the search's point, the whole-sequence
   stage's iterates and Adam's last step (a windowed stage's objective is not the whole window's,
   and Adam's last step need not be its best); a last step that diverges loses to the other

@@ -90,7 +90,8 @@ class GlobalSearch:
         """The batched simulators kept, by (rows, worker slot)."""
         self.timing: dict[str, float] = {}
         """Of the last ``batch_object_losses``: ``rollout_s`` and ``score_s``, each summed over its
-        rollouts (on several CPU cores the sums exceed the wall time)."""
+        rollouts (on several CPU cores the sums exceed the wall time). On a GPU the scoring is
+        queued behind the rollout (``_score``): ``rollout_s`` holds both, ``score_s`` the reading."""
         self.own_step_batches = identifier.sim.device.startswith("cuda")
         """Whether rows that each take their own time step go in one batched rollout whose rows
         step on their own (``Simulator.rollout(own_steps=True)``): on a GPU, where a batch costs
@@ -241,7 +242,8 @@ class GlobalSearch:
         """Roll the configured ``batch`` out over ``frames`` frames and score each row.
 
         ``own``: each row at its own time step. Returns the rows' losses, their per-object shares
-        and (rollout, scoring) seconds.
+        and (rollout, scoring) seconds. On a GPU the scores are queued behind the rollout
+        (``Simulator.queue_rollout``), and the host reads them once it has waited for both.
         """
         fit = self.identifier
         obs = fit.problem.observations
