@@ -1489,8 +1489,8 @@ class Simulator:
         if graph is None:
             kind = _graph_kind(key)
             if kind not in self._loaded:
-                self._loaded.add(kind)
                 body()
+                self._loaded.add(kind)  # once it ran: a run that stopped part-way loaded part of it
                 return
             # No garbage collection while capturing: collecting another simulator's graph
             # destroys it, which CUDA forbids during a capture and which then fails this one.
