@@ -26,6 +26,7 @@ from mosiv_ros.sim.simulator import (
     Gradients,
     ObjectModel,
     Particles,
+    QueuedRollout,
     SimConfig,
     SimState,
     Simulator,
@@ -36,7 +37,7 @@ from mosiv_ros.sim.simulator import (
 __all__ = [
     "BUILTIN_EFFECTS", "BodyForce", "Collider", "Effect", "FAMILY_PARAMS", "Gradients", "Gravity",
     "Ground", "KelvinVoigtDamping", "LinearDrag", "MATERIAL_PARAMS", "ObjectModel", "ParamSpec",
-    "ParameterError", "Particles", "QuadraticDrag", "SimConfig", "SimulationDiverged",
+    "ParameterError", "Particles", "QuadraticDrag", "QueuedRollout", "SimConfig", "SimulationDiverged",
     "SimulationError", "SimState", "Simulator", "WALL_RETRIES", "domain_around", "reaches_walls",
     "resolve_device",
 ]
