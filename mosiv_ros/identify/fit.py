@@ -67,7 +67,7 @@ from mosiv_ros.identify.losses import (
 from mosiv_ros.identify.observations import Observations
 from mosiv_ros.identify.search import GlobalSearch
 from mosiv_ros.lifting.lift import boundary_volume
-from mosiv_ros.sim import ObjectModel, Particles, SimConfig, SimState, Simulator
+from mosiv_ros.sim import Gradients, ObjectModel, Particles, SimConfig, SimState, Simulator
 from mosiv_ros.sim.errors import SimulationDiverged, SimulationError
 from mosiv_ros.sim.materials import FAMILY_PARAMS, MATERIAL_PARAM_NAMES
 from mosiv_ros.simulation import OFFSET
@@ -401,28 +401,7 @@ class Identifier:
         rows' losses are independent, so one backward gives each its own gradients.
         """
         obs = self.problem.observations
-        tick = time.perf_counter()
-        if self.tensor_device is None:
-            traj = sim.rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
-            self.timing = {"forward_s": time.perf_counter() - tick}
-            tick = time.perf_counter()
-            totals, dL, pers = self._loss_of(traj, start, inside, grad)
-            self.timing["loss_s"] = time.perf_counter() - tick
-        else:  # the loss queued behind the rollout, its host work done while the device simulates
-            queued = sim.queue_rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
-            queued_at = time.perf_counter()
-            x = queued_positions(queued.positions, sim.n_batch, sim.n_particles, self.tensor_device)
-            terms = self._tensor_window(x, start, inside, grad)
-            self.timing = {"loss_s": time.perf_counter() - queued_at}
-            queued.wait()
-            self.timing["forward_s"] = time.perf_counter() - tick
-            dL = queued_gradient(terms[2], self.tensor_device) if grad else None
-        if grad:
-            tick = time.perf_counter()
-            grads = sim.backward(dL)
-            self.timing["backward_s"] = time.perf_counter() - tick
-        if self.tensor_device is not None:  # read once the backward is queued behind the loss
-            totals, pers = (value.cpu().numpy() for value in terms[:2])
+        totals, pers, grads, self.timing = self._window_values(sim, inside, start, length, initial, grad, own_steps)
         if not grad:
             return [(float(total), np.zeros(len(self.entries)), np.zeros((obs.n_objects, 6)), per)
                     for total, per in zip(totals, pers, strict=True)]
@@ -440,15 +419,48 @@ class Identifier:
             results.append((float(total), du, dv, per))
         return results
 
-    def _loss_of(self, traj: np.ndarray, start: int, inside: np.ndarray,
-                 grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each row's loss of rollout ``traj`` (frames ``start``.. on): (R,), dL/dx like ``traj``, per object (R, K).
+    def _window_values(self, sim: Simulator, inside: np.ndarray, start: int, length: int,
+                       initial: SimState | None, grad: bool,
+                       own_steps: bool) -> tuple[np.ndarray, np.ndarray, Gradients | None, dict[str, float]]:
+        """``window_losses``' rollout, loss and backward: the rows' losses, per-object losses, gradients, timing.
 
+        Each row's loss (R,) and per-object losses (R, K), the simulator's gradients (with
+        ``grad``, else None) and the timing (``self.timing``). On a GPU the loss is queued
+        behind the rollout, its host work done while the device simulates, and read once the
+        backward is queued; on the CPU it follows the rollout.
+        """
+        tick = time.perf_counter()
+        if self.tensor_device is None:
+            traj = sim.rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
+            timing = {"forward_s": time.perf_counter() - tick}
+            tick = time.perf_counter()
+            totals, dL, pers = self._loss_of(traj, start, inside)
+            timing["loss_s"] = time.perf_counter() - tick
+        else:
+            queued = sim.queue_rollout(length, grad=grad, initial=initial, start_frame=start, own_steps=own_steps)
+            queued_at = time.perf_counter()
+            x = queued_positions(queued.positions, sim.n_batch, sim.n_particles, self.tensor_device)
+            terms = self._tensor_window(x, start, inside, grad)
+            timing = {"loss_s": time.perf_counter() - queued_at}
+            queued.wait()
+            timing["forward_s"] = time.perf_counter() - tick
+            dL = queued_gradient(terms[2], self.tensor_device) if grad else None
+        grads = None
+        if grad:
+            tick = time.perf_counter()
+            grads = sim.backward(dL)
+            timing["backward_s"] = time.perf_counter() - tick
+        if self.tensor_device is not None:  # read once the backward is queued behind the loss
+            totals, pers = (value.cpu().numpy() for value in terms[:2])
+        return totals, pers, grads, timing
+
+    def _loss_of(self, traj: np.ndarray, start: int, inside: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """On the CPU, each row's loss of rollout ``traj`` (frames ``start``.. on), frame by frame.
+
+        Returns the losses (R,), dL/dx like ``traj`` and the per-object losses (R, K).
         ``inside`` (R, N): which particles of each row are inside the surface (``self.inside``
         for ``sim``'s).
         """
-        if self.tensor_device is not None:
-            return self._tensor_loss(traj, start, inside, grad)
         rows = [self._frame_losses(traj[:, r:r + 1], start, inside[r]) for r in range(traj.shape[1])]
         return (np.array([total for total, _, _ in rows]), np.concatenate([dL for _, dL, _ in rows], axis=1),
                 np.stack([per for *_, per in rows]))
@@ -485,17 +497,6 @@ class Identifier:
                 dL[f, 0] += s.loss.track_weight * g
                 per += s.loss.track_weight * per_f
         return total / length, dL / length, per / length
-
-    def _tensor_loss(self, traj: np.ndarray, start: int, inside: np.ndarray,
-                     grad: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_loss_of``, every row at once, as tensors on ``tensor_device``; dL/dx by autograd (or zeros)."""
-        x = torch.as_tensor(traj[1:], device=self.tensor_device).transpose(0, 1)
-        total, per, dx = self._tensor_window(x.to(torch.float64, memory_format=torch.contiguous_format),
-                                             start, inside, grad)
-        dL = np.zeros(traj.shape, dtype=np.float64)
-        if grad:
-            dL[1:] = dx.transpose(0, 1).cpu().numpy()
-        return total.cpu().numpy(), dL, per.cpu().numpy()
 
     def _tensor_window(self, x: torch.Tensor, start: int, inside: np.ndarray,
                        grad: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
@@ -632,10 +633,9 @@ class Identifier:
 
         def scored(sim: Simulator, inside: np.ndarray) -> tuple[float, np.ndarray] | SimulationDiverged:
             try:
-                traj = sim.rollout(n)
+                total, per, _, _ = self._window_values(sim, inside[None], 0, n, None, False, False)
             except SimulationDiverged as error:
                 return error
-            total, _, per = self._loss_of(traj, 0, inside[None], grad=False)
             return float(total[0]), per[0]
 
         if not cpu:  # one point after the other on ``sim``

@@ -255,15 +255,16 @@ class GlobalSearch:
                 scores = self._tensor_scores(queued_positions(queued.positions, n, batch.n_particles,
                                                               fit.tensor_device), inside, frames)
                 queued.wait()
-                rolled = time.perf_counter()
-                total, per = (value.cpu().numpy() for value in scores)
-                return total, per, (rolled - tick, time.perf_counter() - rolled)
-            traj = batch.rollout(frames, substeps=substeps, own_steps=own)
+            else:
+                traj = batch.rollout(frames, substeps=substeps, own_steps=own)
         except SimulationDiverged as error:
             _LOG.warning("a rollout diverged (%s); its candidates are left out", error)
             return np.full(n, np.nan), np.full((n, obs.n_objects), np.nan), (time.perf_counter() - tick, 0.0)
         rolled = time.perf_counter()
-        total, per = self._frame_scores(traj, inside, frames)
+        if fit.tensor_device is not None:
+            total, per = (value.cpu().numpy() for value in scores)
+        else:
+            total, per = self._frame_scores(traj, inside, frames)
         return total, per, (rolled - tick, time.perf_counter() - rolled)
 
     def _frame_scores(self, traj: np.ndarray, inside: np.ndarray, frames: int) -> tuple[np.ndarray, np.ndarray]:
