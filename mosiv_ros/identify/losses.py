@@ -433,8 +433,7 @@ def queued_positions(positions: wp.array, rows: int, particles: int, device: str
     queued behind it stay in bounds.
     """
     if device != "cpu":
-        wp.stream_from_torch(torch.cuda.current_stream(torch.device(device))).wait_stream(
-            wp.get_stream(positions.device))
+        wp.stream_from_torch(torch.device(device)).wait_stream(wp.get_stream(positions.device))
     frames = positions.shape[0] // (rows * particles)
     x = wp.to_torch(positions).view(frames, rows, particles, 3)[1:].transpose(0, 1)
     return torch.nan_to_num(x.to(torch.float64, memory_format=torch.contiguous_format), 0.0, 0.0, 0.0)
@@ -450,8 +449,7 @@ def queued_gradient(dx: torch.Tensor, device: str) -> wp.array:
     out[1:] = dx.transpose(0, 1)
     gradient = wp.from_torch(out.view(-1, 3), dtype=wp.vec3)
     if device != "cpu":
-        wp.get_stream(gradient.device).wait_stream(
-            wp.stream_from_torch(torch.cuda.current_stream(torch.device(device))))
+        wp.get_stream(gradient.device).wait_stream(wp.stream_from_torch(torch.device(device)))
     return gradient
 
 
