@@ -21,7 +21,9 @@ from mosiv_ros.sim import (
     ObjectModel,
     ParameterError,
     ParamSpec,
+    Particles,
     SimulationDiverged,
+    Simulator,
     kernels,
 )
 from mosiv_ros.sim.effects import GridView
@@ -408,18 +410,27 @@ def test_graph_runs_cover_a_frame_in_runs_that_frames_of_other_lengths_share():
 
 
 def test_cell_order_is_invisible_to_callers():
-    # Two objects, two batches, per-particle velocities and volumes that differ by particle: the
-    # simulator sorted by cell must give, in the callers' order, what the unsorted one gives
-    # (up to the order of float sums), and its last state must continue the same way.
+    # Two objects, two batches, per-particle velocities and volumes that differ by particle, given
+    # with the particles and through the setters: the simulator sorted by cell must give, in the
+    # callers' order, what the unsorted one gives (up to the order of float sums), and its last
+    # state must continue the same way.
     dx, floor = 0.02, 0.1
     solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
                                                                    (0.03, 0.04, 0.03), dx / 2)]
     objects = [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
     runs = {}
     for order in (False, True):
-        sim = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3),
-                    ground=Ground(height=floor), n_batch=2, cell_order=order)
-        n = sim.n_particles
+        config = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3),
+                       ground=Ground(height=floor), cell_order=order).config
+        x = np.concatenate([s[0] for s in solids])
+        n = len(x)
+        given_v = np.random.default_rng(1).normal(scale=0.3, size=(n, 3))
+        given_volume = (dx / 2) ** 3 * np.random.default_rng(2).uniform(0.5, 1.5, size=n)
+        sim = Simulator(objects, Particles(x=x, volume=given_volume, v=given_v,
+                                           object_index=np.repeat([0, 1], [len(s[0]) for s in solids])),
+                        config, n_batch=2)
+        assert np.array_equal(sim.initial_velocity(), np.broadcast_to(given_v.astype(np.float32), (2, n, 3)))
+        assert np.array_equal(sim.volumes(), np.broadcast_to(given_volume.astype(np.float32), (2, n)))
         v = np.random.default_rng(3).normal(scale=0.3, size=(2, n, 3))
         volume = (dx / 2) ** 3 * np.random.default_rng(4).uniform(0.5, 1.5, size=(2, n))
         sim.set_initial_velocity(v)

@@ -805,6 +805,7 @@ class Simulator:
         self.n_nodes = int(np.prod(self.dims))
         self._check_inside(particles)
         self._order = self._cell_order(particles.x, config.cell_order)
+        given = particles  # the callers' order, which the setters below take
         if self._order is not None:
             particles = Particles(x=particles.x[self._order], volume=particles.volume[self._order],
                                   object_index=particles.object_index[self._order],
@@ -848,8 +849,8 @@ class Simulator:
         self.v0 = wp.zeros(self.n_batch * self.n_particles, dtype=wp.vec3, device=d,
                            requires_grad=True)
         self._staging = _Staging(d)
-        self.set_volume(particles.volume)
-        self.set_initial_velocity(particles.v)
+        self.set_volume(given.volume)
+        self.set_initial_velocity(given.v)
         self._setup_colliders()
         # the grid update for this many objects, without the colliders' code where there are none
         self._grid_update = kernels.grid_update_for(kernels.MAX_COLLIDERS if self.config.colliders else 0,
