@@ -497,17 +497,24 @@ def test_a_queued_rollout_that_diverges_says_so_by_its_wait_at_the_latest():
         sim.backward(np.zeros((21, 1, sim.n_particles, 3)))
 
 
-def test_the_default_sorts_scattered_particles_and_keeps_a_lattice():
-    from mosiv_ros.sim.simulator import SORT_BELOW, shared_cells
+def test_the_default_sorts_short_lines_and_scattered_particles_and_keeps_long_lines():
+    from mosiv_ros.sim.simulator import SORT_LINES, cell_lines
 
     dx = 0.02
-    sim = scene([box((0.2, 0.2, 0.2), (0.05, 0.04, 0.03), dx / 2)],
-                [ObjectModel("block", "elastic", {})], dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.4))
-    cells = sim._stencil_cells(sim.initial_positions())
-    assert shared_cells(cells) > 0.4 > SORT_BELOW  # a lattice: two particles to a cell along z
-    shuffled = cells[np.random.default_rng(0).permutation(len(cells))]
-    assert shared_cells(shuffled) < 0.05 < SORT_BELOW
-    assert sim._order is None  # and on the CPU nothing is sorted by default
+    lattices = {}
+    for name, half in (("long", (0.03, 0.03, 0.2)), ("short", (0.05, 0.04, 0.03))):
+        sim = scene([box((0.2, 0.2, 0.3), half, dx / 2)], [ObjectModel("block", "elastic", {})],
+                    dx=dx, lo=(0, 0, 0), hi=(0.4, 0.4, 0.6))
+        lattices[name] = sim._stencil_cells(sim.initial_positions())
+        # on the CPU nothing is sorted by default, on a GPU the short lines
+        assert (sim._order is None) == (DEVICE == "cpu" or name == "long")
+    # two particles to a cell along z, lines as long as the block: 40 and 6 particles
+    assert cell_lines(lattices["long"]) == pytest.approx(40, rel=0.05) and SORT_LINES <= 40
+    assert cell_lines(lattices["short"]) == pytest.approx(6, rel=0.05) and SORT_LINES > 6
+    shuffled = lattices["long"][np.random.default_rng(0).permutation(len(lattices["long"]))]
+    assert cell_lines(shuffled) < 1.2
+    # sorted, a line holds every particle of its column of cells: 8 a cell, 20 cells along z
+    assert cell_lines(np.sort(shuffled)) == pytest.approx(160, rel=0.05)
 
 
 def test_kernel_arguments_are_found_by_name_and_a_missing_or_unused_one_is_named():

@@ -99,9 +99,9 @@ class SimConfig:
     (``graph_runs``); off, every kernel is launched from Python (same results up to the order of
     float atomics).
     ``cell_order``: keep the particles sorted by grid cell inside the simulator (callers see
-    their own order). None (default): on a CUDA device, sort when the given order scatters
-    neighbours (fewer than ``SORT_BELOW`` of consecutive particles share their stencil's cell);
-    on the CPU, never (``Simulator._stencil_cells`` says why). ``tape_memory``: GB that a
+    their own order). None (default): on a CUDA device, sort unless the given order already
+    runs along lines of cells a warp long (``cell_lines`` at least ``SORT_LINES``); on the CPU,
+    never (``Simulator._stencil_cells`` says why). ``tape_memory``: GB that a
     ``grad=True`` rollout on a CUDA device may keep every frame's substep states and grids in,
     so that ``backward`` copies each frame's back and runs its adjoint instead of first
     recomputing it; a rollout that needs more, every rollout at 0, and every rollout on the CPU
@@ -209,15 +209,24 @@ class QueuedRollout:
     wait: Callable[[], None]
 
 
-SORT_BELOW = 0.25
-"""``SimConfig.cell_order``'s default sorts when fewer consecutive particles share a cell: a
-lattice with two particles to a cell along its fastest axis shares about half, random order
-almost none."""
+SORT_LINES = 32
+"""``SimConfig.cell_order``'s default keeps the given order where its lines of cells
+(``cell_lines``) are at least this many particles long, a CUDA warp's lanes: a warp then
+scatters along one line. A lattice with shorter lines, and particles in any looser order,
+are sorted (benchmarks/RESULTS.md, "Particles sorted by cell unless ...")."""
 
 
-def shared_cells(cells: np.ndarray) -> float:
-    """The fraction of consecutive particles whose stencils start in the same cell."""
-    return float(np.mean(cells[1:] == cells[:-1])) if len(cells) > 1 else 1.0
+def cell_lines(cells: np.ndarray) -> float:
+    """The mean length, in particles, of the runs of consecutive particles along one line of cells.
+
+    ``cells`` are the linear indices of the particles' stencil cells (``Simulator._stencil_cells``,
+    the last axis fastest): a run goes on while each particle's cell is its predecessor's or the
+    next one along that axis. A lattice ordered as ``sim.sampling`` makes it (two particles to a
+    cell along the fastest axis) runs as long as the object is along that axis; random order
+    about one particle.
+    """
+    steps = np.diff(cells)
+    return len(cells) / (1 + np.count_nonzero((steps != 0) & (steps != 1)))
 
 
 class _Arena:
@@ -1000,7 +1009,7 @@ class Simulator:
         if asked is False or (asked is None and not self.device.startswith("cuda")):
             return None
         cells = self._stencil_cells(x)
-        if asked is None and shared_cells(cells) >= SORT_BELOW:
+        if asked is None and cell_lines(cells) >= SORT_LINES:
             return None
         return np.argsort(cells, kind="stable")
 
@@ -1013,9 +1022,11 @@ class Simulator:
         callers never see it. Neighbouring lanes of a warp then share their stencil, and P2G's
         scatter adds once per run of them (``sim.warp_reduce``). Measured on an H200 (benchmarks/
         RESULTS.md): particles given in random order took 3x as long per substep as sorted ones
-        at 100k and 1M particles; particles given on a lattice (two to a cell along its fastest
-        axis, as ``sim.sampling`` and lifting make them) were 10-35 % faster as given than
-        sorted, so the default sorts only orders that scatter neighbours. On the CPU a launch's
+        at 100k and 1M particles. One block on a lattice (two particles to a cell along its
+        fastest axis, as ``sim.sampling`` makes it) of 97k or 1M particles, whose lines run 46
+        and 100 particles, was 9-31 % faster as given than sorted; the search batches of
+        lifted sample bags (lines of 6-8 particles) and of 32 blocks of 2,744 (lines of 14) were
+        up to 21 % faster sorted, or the same. Hence ``SORT_LINES``. On the CPU a launch's
         threads run in order without contention, and the given order is kept by default.
         """
         cell = np.clip(np.floor((x - self.lo) / self.dx - 0.5), 0, np.asarray(self.dims) - 3)
