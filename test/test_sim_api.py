@@ -825,3 +825,32 @@ def test_a_process_loading_kernels_builds_the_free_modules_first_then_waits_for_
     assert f"kernels of {kernels.__name__} ready" in out.split(f"kernels of {others[-1]} ready")[1]
     assert "waited" in out and "for another process building kernels into the cache" in out
     assert f"kernels ready on {DEVICE}" in out
+
+
+def test_a_grid_that_g2p_clears_moves_as_one_cleared_whole():
+    """A GPU's grids without gradients are cleared by G2P, each particle its stencil's nodes (``_Grid``).
+
+    Two objects meeting, effects that write accelerations (drag) and stresses (a dashpot), two
+    rows at their own time steps (so that one row's frame ends first and its particles skip
+    substeps), and a second rollout on the same buffers: as a grid cleared whole every substep.
+    """
+    from mosiv_ros.sim.simulator import _Grid, _State
+
+    runs = {}
+    for clears in (False, True):
+        sim = _two_balls(n_batch=2, effects=[Gravity(), LinearDrag(coefficient=2.0), KelvinVoigtDamping(viscosity=5.0)])
+        sim.params.set("E", np.array([[3e4, 5e4], [3e5, 5e4]]))
+        B, N = sim.n_batch, sim.n_particles
+        sim._buffers = ([_State(B * N, sim.device, False) for _ in range(2)],
+                        _Grid(B, sim.n_objects, sim.dims, B * N, sim._stress, sim.device, False, sim._accelerated,
+                              clears=clears))
+        assert sim._stress and sim._accelerated
+        substeps = sim.own_time_steps()[0]
+        assert substeps[0] < substeps[1]
+        runs[clears] = (sim.rollout(3, own_steps=True), sim.rollout(2))
+        if clears:  # what G2P leaves: nothing for the next substep to add to
+            grid = sim._buffers[1]
+            assert not grid.m.numpy().any() and not grid.p.numpy().any() and not grid.a.numpy().any()
+            assert not grid.tau.numpy().any() and grid.v.numpy().any()
+    for cleared_whole, cleared_by_g2p in zip(runs[False], runs[True], strict=True):
+        assert _equal(cleared_whole, cleared_by_g2p)

@@ -303,7 +303,12 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
               "ground_normal": array(np.repeat([0.1, 0.2, 1.0, -0.1, 0.05, 0.9], REPLICAS), float)}
     outputs = [array(np.zeros((B * N, 3)), wp.vec3), array(np.zeros((B * N, 3)), wp.vec3),
                array(np.zeros((B * N, 3, 3)), wp.mat33)]
-    given = {**inputs, "obj": wp.array(rng.integers(0, K, N).astype(np.int32), dtype=int, device=DEVICE),
+    # the grid's other arrays, which only a grid that G2P clears (none on a tape) has it write
+    grid = {"grid_m": wp.zeros(B * K * G, dtype=float, device=DEVICE),
+            "grid_p": wp.zeros(B * K * G, dtype=wp.vec3, device=DEVICE),
+            "grid_a": wp.zeros(0, dtype=wp.vec3, device=DEVICE),
+            "grid_tau": wp.zeros(0, dtype=wp.mat33, device=DEVICE), "grid_clears": 0}
+    given = {**inputs, **grid, "obj": wp.array(rng.integers(0, K, N).astype(np.int32), dtype=int, device=DEVICE),
              "has_ground": 1, "n_particles": N, "block_warps": 8, "n_objects": K, "n_nodes": G,
              "dims": wp.vec3i(*dims), "lo": wp.vec3(0.0), "dx": dx, "dt": 0.01,
              "own_dt": array([0.03, 0.02], float, grad=False),

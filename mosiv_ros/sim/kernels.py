@@ -565,6 +565,11 @@ def g2p(
     src_v: wp.array(dtype=wp.vec3),
     src_C: wp.array(dtype=wp.mat33),
     grid_v: wp.array(dtype=wp.vec3),
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    grid_tau: wp.array(dtype=wp.mat33),
+    grid_clears: int,
     obj: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
     ground_normal: wp.array(dtype=float),
@@ -586,13 +591,17 @@ def g2p(
     """Gather velocity and affine field from the particle's own object field and advect.
 
     The particle is also kept on or above the ground plane. A row whose frame is done (rows at
-    their own time steps) keeps its state. Its adjoint is ``g2p_adjoint``: Warp's is not
-    generated (it would only lengthen this module's build; the test that holds ``g2p_adjoint``
-    to it builds its own).
+    their own time steps) keeps its state. Where ``grid_clears`` (a grid without gradients on a
+    GPU, ``simulator._Grid``) it also clears its stress and the masses, momenta and
+    accelerations of its stencil's nodes for the next substep. Its adjoint is ``g2p_adjoint``:
+    Warp's is not generated (it would only lengthen this module's build; the test that holds
+    ``g2p_adjoint`` to it builds its own).
     """
     i = block_particle(wp.tid(), block_warps, src_x.shape[0])
     if i < 0:
         return
+    if grid_clears != 0 and grid_tau.shape[0] > 0:
+        grid_tau[i] = wp.mat33(0.0)
     batch = i // n_particles
     if not own_turn(own_substeps, batch, substep):
         dst_x[i] = src_x[i]
@@ -623,6 +632,11 @@ def g2p(
                 moment_x += g_w * float(a)
                 moment_y += g_w * float(c)
                 moment_z += g_w * float(e)
+                if grid_clears != 0:
+                    grid_m[node] = 0.0
+                    grid_p[node] = wp.vec3(0.0)
+                    if grid_a.shape[0] > 0:
+                        grid_a[node] = wp.vec3(0.0)
     new_C = (wp.mat33(moment_x[0], moment_y[0], moment_z[0], moment_x[1], moment_y[1], moment_z[1],
                       moment_x[2], moment_y[2], moment_z[2]) - wp.outer(new_v, fx)) * (4.0 * inv_dx)
     x_new = x_i + new_v * own_dt[batch]
@@ -656,6 +670,11 @@ def g2p_adjoint(
     src_v: wp.array(dtype=wp.vec3),
     src_C: wp.array(dtype=wp.mat33),
     grid_v: wp.array(dtype=wp.vec3),
+    grid_m: wp.array(dtype=float),
+    grid_p: wp.array(dtype=wp.vec3),
+    grid_a: wp.array(dtype=wp.vec3),
+    grid_tau: wp.array(dtype=wp.mat33),
+    grid_clears: int,
     obj: wp.array(dtype=int),
     ground_height: wp.array(dtype=float),
     ground_normal: wp.array(dtype=float),

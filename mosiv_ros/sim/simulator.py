@@ -453,25 +453,33 @@ class _Grid:
     the CPU ``zero`` and ``zero_grad`` clear that box only (about a tenth of the grid around a
     scene); elsewhere the box is the whole grid.
 
-    Without gradients and with one object the velocities ``v`` are the momenta ``p``,
+    ``clears`` (a grid without gradients on a GPU with more than ``CLEAR_NODES`` field nodes a
+    particle, such as a search batch's, whose memset was a sixth of its substep): G2P clears
+    what the next substep adds to, each particle its stress and the masses, momenta and
+    accelerations of its stencil's nodes, which are every node that a substep gave mass to;
+    ``zero`` clears the whole grid only for a substep that follows none (``box`` None: a
+    rollout's first, ``Simulator._queue_rollout``). The velocities are kept apart from the
+    momenta there, as G2P reads them while it clears.
+
+    Otherwise, without gradients and with one object, the velocities ``v`` are the momenta ``p``,
     overwritten: the grid update reads a node's momentum in the thread that writes its velocity,
     and nothing reads momenta after it. At a node without mass the momentum is zero too (every
     particle adds its mass and momentum with the same weight), so G2P reads what a zeroed ``v``
-    held, and a substep clears a third less memory (on a GPU a search batch's grid is mostly
-    empty nodes: the clearing was a sixth of its substep). A tape needs the momenta for the
-    adjoint, and with several objects the grid update of one field reads the momenta of the
-    others at its node (``kernels.grid_update``'s contact sums), so there ``v`` has its own.
+    held, and a substep clears a third less memory. A tape needs the momenta for the adjoint,
+    and with several objects the grid update of one field reads the momenta of the others at
+    its node (``kernels.grid_update``'s contact sums), so there ``v`` has its own.
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
                  stress: bool, device: str, requires_grad: bool, accelerated: bool = True,
-                 memory: Memory | None = None) -> None:
+                 memory: Memory | None = None, clears: bool = False) -> None:
         # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
         (self.m, self.p, self.a, self.v, self.tau), self._values, self._grads = _arrays(
-            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad), device,
-            requires_grad, memory)
-        if not self.own_velocities(n_objects, requires_grad):
+            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad, clears),
+            device, requires_grad, memory)
+        if not self.own_velocities(n_objects, requires_grad, clears):
             self.v = self.p
+        self.clears = int(clears)
         self.box: tuple[tuple[int, ...], tuple[int, ...]] | None = None
         self._cpu = device == "cpu"
         self._field_grid = (n_batch * n_objects, *dims)  # the per-node arrays seen as grids, one per field
@@ -479,21 +487,21 @@ class _Grid:
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-              stress: bool, accelerated: bool, requires_grad: bool) -> list[tuple[int, type]]:
+              stress: bool, accelerated: bool, requires_grad: bool, clears: bool = False) -> list[tuple[int, type]]:
         """The arrays' sizes and types.
 
         Accelerations and stresses only where an effect adds them, velocities apart from the
         momenta only where ``own_velocities``.
         """
         n_grid = n_batch * n_objects * int(np.prod(dims))
-        velocities = _Grid.own_velocities(n_objects, requires_grad)
+        velocities = _Grid.own_velocities(n_objects, requires_grad, clears)
         return [(n_grid, float), (n_grid, wp.vec3), (n_grid if accelerated else 0, wp.vec3),
                 (n_grid if velocities else 0, wp.vec3), (n_particles if stress else 0, wp.mat33)]
 
     @staticmethod
-    def own_velocities(n_objects: int, requires_grad: bool) -> bool:
+    def own_velocities(n_objects: int, requires_grad: bool, clears: bool = False) -> bool:
         """Whether the velocities have an array of their own rather than overwrite the momenta (class docstring)."""
-        return requires_grad or n_objects > 1
+        return requires_grad or n_objects > 1 or clears
 
     @property
     def arrays(self) -> tuple[wp.array, ...]:
@@ -672,6 +680,13 @@ def _p2g_planes(n: int) -> tuple[int, int]:
     return 1, _block_warps(n)
 
 
+CLEAR_NODES = 10
+"""On a GPU, G2P clears a grid without gradients (``_Grid.clears``) where it has more than this
+many field nodes a particle, and a memset clears it otherwise. On an H200 (benchmarks/RESULTS.md)
+a memset cleared a field node in about 0.0066 ns and G2P's clearing added about 0.07 ns a
+particle. Cleared by G2P, the search batches of thrown_ball and cube_on_slab (23 and 17 field
+nodes a particle) took 9-10 % less time a substep and a batch of two small blocks (16) the
+same; a batch of one small block (7) took 5 % more and one block of 1M particles (0.3) 13 %."""
 SUBSTEP_HEADROOM = 1.15
 """On a GPU, a frame's tape buffers hold this many times the substeps first asked for."""
 _G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_normal", "dst_x", "dst_v",
@@ -1227,7 +1242,7 @@ class Simulator:
         """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
-        if cleared:
+        if cleared or (grid.clears and grid.box is not None):  # (``_Grid``'s docstring)
             grid.box = (box_lo, box_dims)
         else:
             grid.zero((box_lo, box_dims))
@@ -1675,8 +1690,12 @@ class Simulator:
         if self._buffers is None:
             self._buffers = ([_State(B * N, self.device, False) for _ in range(2)],
                              _Grid(B, self.n_objects, self.dims, B * N, self._stress,
-                                   self.device, False, self._accelerated))
+                                   self.device, False, self._accelerated,
+                                   clears=self.device != "cpu" and self.n_objects * self.n_nodes
+                                   > CLEAR_NODES * self.n_particles))
         states, grid = self._buffers
+        if grid.clears:  # cleared whole by the first substep (a rollout before may have diverged)
+            grid.box = None
         if initial is None:
             self._initial_state(states[0])
         else:
