@@ -833,6 +833,8 @@ def test_a_grid_that_g2p_clears_moves_as_one_cleared_whole():
     Two objects meeting, effects that write accelerations (drag) and stresses (a dashpot), two
     rows at their own time steps (so that one row's frame ends first and its particles skip
     substeps), and a second rollout on the same buffers: as a grid cleared whole every substep.
+    A rollout clears the whole grid first, whatever a rollout before it left there (velocities
+    that a diverged one left non-finite).
     """
     from mosiv_ros.sim.simulator import _Grid, _State
 
@@ -852,5 +854,8 @@ def test_a_grid_that_g2p_clears_moves_as_one_cleared_whole():
             grid = sim._buffers[1]
             assert not grid.m.numpy().any() and not grid.p.numpy().any() and not grid.a.numpy().any()
             assert not grid.tau.numpy().any() and grid.v.numpy().any()
+            grid.v.fill_(wp.vec3(np.nan, np.nan, np.nan))
+            sim.rollout(1)
+            assert np.isfinite(grid.v.numpy()).all()
     for cleared_whole, cleared_by_g2p in zip(runs[False], runs[True], strict=True):
         assert _equal(cleared_whole, cleared_by_g2p)

@@ -213,7 +213,7 @@ SORT_LINES = 32
 """``SimConfig.cell_order``'s default keeps the given order where its lines of cells
 (``cell_lines``) are at least this many particles long, a CUDA warp's lanes: a warp then
 scatters along one line. A lattice with shorter lines, and particles in any looser order,
-are sorted (benchmarks/RESULTS.md, "Particles sorted by cell unless ...")."""
+are sorted (benchmarks/RESULTS.md, "Particles sorted by cell where their lines are short")."""
 
 
 def cell_lines(cells: np.ndarray) -> float:
@@ -454,12 +454,13 @@ class _Grid:
     scene); elsewhere the box is the whole grid.
 
     ``clears`` (a grid without gradients on a GPU with more than ``CLEAR_NODES`` field nodes a
-    particle, such as a search batch's, whose memset was a sixth of its substep): G2P clears
+    particle, such as a search batch's, whose memset was an eighth of its substep): G2P clears
     what the next substep adds to, each particle its stress and the masses, momenta and
-    accelerations of its stencil's nodes, which are every node that a substep gave mass to;
-    ``zero`` clears the whole grid only for a substep that follows none (``box`` None: a
-    rollout's first, ``Simulator._queue_rollout``). The velocities are kept apart from the
-    momenta there, as G2P reads them while it clears.
+    accelerations of its stencil's nodes, which are every node that a substep gave mass to, and
+    the whole grid is cleared once at each rollout's start (``Simulator._queue_rollout``, outside
+    the captured graphs: velocities left non-finite by a rollout that diverged would otherwise
+    reach G2P at a stencil's node of zero weight and no mass). The velocities are kept apart
+    from the momenta there, as G2P reads them while it clears.
 
     Otherwise, without gradients and with one object, the velocities ``v`` are the momenta ``p``,
     overwritten: the grid update reads a node's momentum in the thread that writes its velocity,
@@ -515,6 +516,11 @@ class _Grid:
         else:
             self._values.zero()
         self.box = box
+
+    def clear(self) -> None:
+        """Zero every array over the whole grid, whatever ``box`` says (a grid that G2P ``clears``)."""
+        self._values.zero()
+        self.box = None
 
     def zero_grad(self) -> None:
         """Zero the gradients of ``arrays`` (see the class docstring)."""
@@ -1242,7 +1248,7 @@ class Simulator:
         """
         d, B, N, K, G = self.device, self.n_batch, self.n_particles, self.n_objects, self.n_nodes
         box_lo, box_dims = self._active_box(src)
-        if cleared or (grid.clears and grid.box is not None):  # (``_Grid``'s docstring)
+        if cleared or grid.clears:  # (``_Grid``'s docstring)
             grid.box = (box_lo, box_dims)
         else:
             grid.zero((box_lo, box_dims))
@@ -1694,8 +1700,8 @@ class Simulator:
                                    clears=self.device != "cpu" and self.n_objects * self.n_nodes
                                    > CLEAR_NODES * self.n_particles))
         states, grid = self._buffers
-        if grid.clears:  # cleared whole by the first substep (a rollout before may have diverged)
-            grid.box = None
+        if grid.clears:  # cleared whole here, outside the captured graphs: a rollout before may have diverged
+            grid.clear()
         if initial is None:
             self._initial_state(states[0])
         else:
