@@ -1045,7 +1045,7 @@ class Simulator:
         RESULTS.md): particles given in random order took 3x as long per substep as sorted ones
         at 100k and 1M particles. One block on a lattice (two particles to a cell along its
         fastest axis, as ``sim.sampling`` makes it) of 97k or 1M particles, whose lines run 46
-        and 100 particles, was 9-31 % faster as given than sorted; the search batches of
+        and 100 particles, ran 9-31 % slower sorted than as given; the search batches of
         lifted sample bags (lines of 6-8 particles) and of 32 blocks of 2,744 (lines of 14) were
         up to 21 % faster sorted, or the same. Hence ``SORT_LINES``. On the CPU a launch's
         threads run in order without contention, and the given order is kept by default.
