@@ -46,14 +46,14 @@ def main() -> int:
         start = time.perf_counter()
         sim.backward(np.full_like(traj, 1e-3))
         frame["backward"] = min(frame["backward"], time.perf_counter() - start)
-    n_sub, dt = sim._record["n_sub"], sim._record["dt"]
+    n_sub = sim._record["n_sub"]
     recorded = sim._tape_buffers_for(n_sub)[0]
     states, grids = recorded.states, recorded.grids
     states[0].copy_from(sim._record["checkpoints"][0])
     tape = wp.Tape()
     with tape:
         for s in range(n_sub):
-            sim._substep(states[s], states[s + 1], grids[s], s, dt)
+            sim._substep(states[s], states[s + 1], grids[s], s)
     states[-1].x.grad.fill_(1e-3)
     forward: dict[str, float] = {}
     adjoint: dict[str, float] = {}

@@ -859,3 +859,26 @@ def test_a_grid_that_g2p_clears_moves_as_one_cleared_whole():
             assert np.isfinite(grid.v.numpy()).all()
     for cleared_whole, cleared_by_g2p in zip(runs[False], runs[True], strict=True):
         assert _equal(cleared_whole, cleared_by_g2p)
+
+
+def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monkeypatch):
+    """``benchmarks/sim_kernel_profile.py`` runs: it once broke unnoticed when ``_substep``'s arguments changed."""
+    import importlib.util
+    import json
+    import sys
+
+    benchmarks = Path(__file__).resolve().parents[1] / "benchmarks"
+    monkeypatch.syspath_prepend(str(benchmarks))  # it imports sim_throughput's scene
+    spec = importlib.util.spec_from_file_location("sim_kernel_profile", benchmarks / "sim_kernel_profile.py")
+    profile = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(profile)
+    monkeypatch.setattr(sys, "argv", ["sim_kernel_profile.py", "--device", DEVICE, "--particles", "500",
+                                      "--repeats", "1"])
+    assert profile.main() == 0
+    result = json.loads(capsys.readouterr().out)
+    for part in ("forward_s", "adjoint_s"):
+        times = result[part]
+        assert "g2p" in times and any(name.endswith("p2g") for name in times), times
+        assert any(name.startswith("grid_update") for name in times), times
+        assert all(t > 0 for t in times.values())
+    assert result["frame_s"]["forward"] > 0 and result["frame_s"]["backward"] > 0
