@@ -480,7 +480,10 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
         index = field_node(wp.tid(), box_lo, box_dims, dims)
         m = grid_m[index]
         if m <= 0.0:
-            return  # no particle's stencil reads an empty field node; grid_v was zeroed (or is grid_p, zero here)
+            # a particle's stencil reads an empty field node only at a weight of zero, and grid_v
+            # there is zero (or is grid_p, zero here), or on a grid that G2P clears a finite
+            # velocity of an earlier substep of the rollout (simulator._Grid)
+            return
         batch = index // (objects * n_nodes)
         k = (index // n_nodes) % objects
         node = index % n_nodes
