@@ -36,7 +36,8 @@ corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
 accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's, which
-is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU). Warp's adjoint of a
+is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU), and P2G's scatter,
+whose adjoint Warp calls in place of its own (``scatter_plane``'s). Warp's adjoint of a
 loop whose bound is known only at run time gets a differentiable value the loop carries wrong
 (a sum over a node's fields came out inf and NaN), so ``grid_update`` is built for the scene's
 object count, and its differentiable sums over a node's fields are loops over that constant,
@@ -157,6 +158,65 @@ def scatter_plane(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3)
             node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
             p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
             scatter(grid_m, grid_p, node, run, weight * mass, p_node * weight)
+
+
+@wp.func_replay(scatter_plane)
+def _replay_scatter_plane(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), a: int,
+                          w_a: float, wy: wp.vec3, wz: wp.vec3, mass: float, at_origin: wp.vec3,
+                          per_x: wp.vec3, per_y: wp.vec3, per_z: wp.vec3, offset: int, base: wp.vec3i,
+                          dims: wp.vec3i, run: int):
+    """The backward pass replays P2G without scattering again: the grid holds the forward's sums."""
+    pass
+
+
+@wp.func_grad(scatter_plane)
+def _adjoint_scatter_plane(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), a: int,
+                           w_a: float, wy: wp.vec3, wz: wp.vec3, mass: float, at_origin: wp.vec3,
+                           per_x: wp.vec3, per_y: wp.vec3, per_z: wp.vec3, offset: int, base: wp.vec3i,
+                           dims: wp.vec3i, run: int):
+    """The adjoint of ``scatter_plane``: the nine nodes' adjoints gathered and summed as read.
+
+    Warp's own adjoint of the unrolled loop keeps every node's intermediates live until its
+    reverse sweep: P2G's adjoint spilled its 255 registers a thread and took 2.7 times as long
+    on an H200 (docs/simulator.md, "On a GPU"). Here a node's adjoints (gm, gp) fold into sums
+    at once: with weight = w_a wy[c] wz[e] and p_node as in the forward,
+    d/d weight = gm mass + gp . p_node, d/d mass = sum weight gm, and p_node's adjoint
+    weight gp goes to at_origin and, times the node's offset along each axis, to per_x, per_y, per_z.
+    """
+    adj_m = wp.adjoint[grid_m]
+    adj_p = wp.adjoint[grid_p]
+    if adj_m.shape[0] > 0:
+        d_w_a = float(0.0)
+        d_mass = float(0.0)
+        d_wy = wp.vec3(0.0)
+        d_wz = wp.vec3(0.0)
+        moved = wp.vec3(0.0)  # sum of weight gp
+        along_y = wp.vec3(0.0)  # sum of c weight gp
+        along_z = wp.vec3(0.0)  # sum of e weight gp
+        for c in range(3):
+            for e in range(3):
+                node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                gm = adj_m[node]
+                gp = adj_p[node]
+                w_yz = wy[c] * wz[e]
+                weight = w_a * w_yz
+                p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
+                d_weight = gm * mass + wp.dot(gp, p_node)
+                d_w_a += d_weight * w_yz
+                d_wy[c] = d_wy[c] + d_weight * w_a * wz[e]
+                d_wz[e] = d_wz[e] + d_weight * w_a * wy[c]
+                d_mass += weight * gm
+                moved += gp * weight
+                along_y += gp * (weight * float(c))
+                along_z += gp * (weight * float(e))
+        wp.adjoint[w_a] += d_w_a
+        wp.adjoint[wy] += d_wy
+        wp.adjoint[wz] += d_wz
+        wp.adjoint[mass] += d_mass
+        wp.adjoint[at_origin] += moved
+        wp.adjoint[per_x] += moved * float(a)
+        wp.adjoint[per_y] += along_y
+        wp.adjoint[per_z] += along_z
 
 
 def _p2g(planes: int) -> wp.Kernel:

@@ -12,8 +12,8 @@ bound by them (Nsight Compute: 64 % of the L2's throughput, 4 % of DRAM's, 649 o
 Here the lanes of a warp with the same key (the field node of their stencil's first corner, so
 that equal keys mean equal stencils) that sit next to each other form a run; each run sums its
 values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run steps)
-and its last lane does the one atomic add. Adjoint of ``scatter``: a scatter's value gets the
-node's adjoint, as a plain atomic add's does.
+and its last lane does the one atomic add. Neither function has an adjoint: P2G's adjoint
+reads its stencil's nodes in a function of its own (``kernels.scatter_plane``).
 
 On the CPU (no warps; the threads of a launch run in order) every function is the plain atomic
 add it replaces, so CPU results are unchanged to the bit. Runs are recomputed in every
@@ -82,17 +82,6 @@ _SCATTER = """
 #endif
 """
 
-_ADJ_SCATTER = """
-    if (adj_grid_m.data)
-        adj_m += wp::index(adj_grid_m, node);
-    else if (grid_m.grad)
-        adj_m += wp::index_grad(grid_m, node);
-    if (adj_grid_p.data)
-        adj_p += wp::index(adj_grid_p, node);
-    else if (grid_p.grad)
-        adj_p += wp::index_grad(grid_p, node);
-"""
-
 _ADD = """
 #if defined(__CUDA_ARCH__)
 """ + _RUN + """
@@ -112,10 +101,13 @@ def run_start(key: int) -> int:
     ...
 
 
-@wp.func_native(_SCATTER, _ADJ_SCATTER, replay_snippet="")
+@wp.func_native(_SCATTER)
 def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node: int, run: int,
             m: float, p: wp.vec3):
-    """grid_m[node] += m and grid_p[node] += p, once per run of lanes (``run_start``)."""
+    """grid_m[node] += m and grid_p[node] += p, once per run of lanes (``run_start``); no adjoint.
+
+    P2G's adjoint gathers its nodes' adjoints itself (``kernels.scatter_plane``).
+    """
     ...
 
 
