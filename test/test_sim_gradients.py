@@ -336,9 +336,10 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
 def test_p2g_scatter_adjoint_adds_what_warps_generated_adjoint_of_its_atomics_adds():
     """``kernels.scatter_plane``'s written adjoint against Warp's of the same scatter as plain atomics.
 
-    Random stencil weights, masses, momenta and corners, threads on every plane of two objects'
-    fields (so that nodes are shared), random node adjoints: every input's adjoint within
-    float32 rounding of the one Warp generates for the nine atomic adds written out.
+    Random stencil weights, masses, momenta and corners, two threads on each plane of a stencil
+    (a run of lanes that adds once on a GPU) in two objects' fields, random node adjoints: the
+    grid's sums and every input's adjoint within float32 rounding of the ones Warp generates for
+    the nine atomic adds written out, and the grid untouched by the backward pass.
     """
     import warp as wp
 
@@ -363,18 +364,21 @@ def test_p2g_scatter_adjoint_adds_what_warps_generated_adjoint_of_its_atomics_ad
                         base: wp.array(dtype=wp.vec3i), n_nodes: int, dims: wp.vec3i,
                         grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3)):
             i = wp.tid()
-            a = i % 3
-            offset = (i // 3 % 2) * n_nodes
+            group = i // 6  # a stencil's corner, pairs of threads on each of its planes
+            a = i % 6 // 2
+            offset = group % 2 * n_nodes
+            corner = base[group]
             w_i = w[i]
             wy, wz = w[i + 1], w[i + 2]
             v = 4 * i
             if wp.static(written):
-                run = run_start(offset + kernels.node_index(base[i][0], base[i][1], base[i][2], dims))
+                # on a GPU a pair of lanes on one plane is a run (warp_reduce): they add once
+                run = run_start((offset + kernels.node_index(corner[0], corner[1], corner[2], dims)) * 3 + a)
                 kernels.scatter_plane(grid_m, grid_p, a, w_i[a], wy, wz, mass[i], vectors[v], vectors[v + 1],
-                                      vectors[v + 2], vectors[v + 3], offset, base[i], dims, run)
+                                      vectors[v + 2], vectors[v + 3], offset, corner, dims, run)
             else:
                 plain(grid_m, grid_p, a, w_i[a], wy, wz, mass[i], vectors[v], vectors[v + 1], vectors[v + 2],
-                      vectors[v + 3], offset, base[i], dims)
+                      vectors[v + 3], offset, corner, dims)
 
         return scatter_all
 
@@ -387,7 +391,7 @@ def test_p2g_scatter_adjoint_adds_what_warps_generated_adjoint_of_its_atomics_ad
 
     values = {"w": rng.uniform(0.0, 1.0, size=(n + 2, 3)), "mass": rng.uniform(0.5, 2.0, size=n),
               "vectors": rng.normal(size=(4 * n, 3))}
-    base = wp.array(rng.integers(0, np.array(dims) - 2, size=(n, 3)).astype(np.int32), dtype=wp.vec3i,
+    base = wp.array(rng.integers(0, np.array(dims) - 2, size=(n // 6, 3)).astype(np.int32), dtype=wp.vec3i,
                     device=DEVICE)
     node_grads = (rng.normal(size=2 * G), rng.normal(size=(2 * G, 3)))
     adjoints, grids = {}, {}
