@@ -28,7 +28,10 @@ a GPU, by KD-trees on the CPU); ``--compare`` times both paths on the same devic
 (tensors, KD-trees, tensors, ...); ``--tapes`` times the window again with every frame's tape
 kept by the rollout and with each frame recomputed by the backward (``SimConfig.tape_memory``),
 alternating, each round after two untimed calls. Each figure is the mean of ``--repeats`` timed calls (their
-minimum too). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
+minimum too). ``--kernels`` (a CUDA device only) also replays one window and one search call
+under torch's profiler, whose CUPTI records every kernel, those of CUDA graphs included, and
+gives each kernel's device time per substep (the launches of G2P's forward count the
+substeps). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
 """
 
 from __future__ import annotations
@@ -36,11 +39,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import re
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from torch.profiler import ProfilerActivity, profile
 
 from mosiv_ros.cli import run_config
@@ -50,6 +55,7 @@ from mosiv_ros.identify.run import problem_options
 from mosiv_ros.io.files import plain
 from mosiv_ros.pipeline import fit_window
 from mosiv_ros.prepare import RunConfig, prepare
+from mosiv_ros.sim.runtime import resolve_device
 
 
 def identifier_of(bag: Path, config: RunConfig) -> tuple[Identifier, np.ndarray]:
@@ -93,7 +99,33 @@ def torch_ops(call) -> int:
     return sum(1 for event in prof.events() if event.cpu_parent is None)
 
 
-def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, tapes: bool) -> dict:
+def kernel_times(call) -> dict:
+    """Each kernel's device time over ``call()`` on a GPU, per substep, by torch's profiler.
+
+    Kernels are named without Warp's module hash (``_forward``/``_backward``: Warp's two
+    versions of one kernel); ``substeps`` counts the launches of G2P's forward, one a substep
+    (twice where a backward recomputes its frames, which the tapes a rollout keeps spare).
+    """
+    torch.cuda.synchronize()
+    with profile(activities=[ProfilerActivity.CUDA]) as prof:
+        call()
+        torch.cuda.synchronize()
+    kernels: dict[str, list] = {}
+    for event in prof.events():
+        if event.device_type == torch.autograd.DeviceType.CUDA:
+            name = re.sub(r"_[0-9a-f]{8}_cuda_kernel_", "_", event.name)[:80]
+            launches = kernels.setdefault(name, [0, 0.0])
+            launches[0] += 1
+            launches[1] += event.device_time
+    substeps = kernels.get("g2p_forward", [0])[0]
+    return {"substeps": substeps, "device_us": sum(us for _, us in kernels.values()),
+            "per_substep_us": {name: us / max(substeps, 1)
+                               for name, (_, us) in sorted(kernels.items(), key=lambda k: -k[1][1])},
+            "launches": {name: n for name, (n, _) in kernels.items()}}
+
+
+def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, tapes: bool,
+        kernels: bool = False) -> dict:
     identifier, velocity = identifier_of(bag, config)
     obs = identifier.problem.observations
     n = obs.n_frames - 1
@@ -140,6 +172,11 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
                 result["tapes"].append({"tape_memory": memory, "kept": bool(identifier.sim.kept_tape_frames),
                                         **timed(identifier, paths, window, lambda: identifier.timing, repeats)})
         identifier.sim.config.tape_memory = None
+    if kernels:
+        result["kernels"] = {"window": kernel_times(window), "search": kernel_times(search)}
+        for part, times in result["kernels"].items():
+            print("kernels", part, times["substeps"], "substeps",
+                  {name: round(us, 2) for name, us in list(times["per_substep_us"].items())[:8]}, flush=True)
     parts = ("window", "search") + (("tapes",) if tapes else ())
     for part in parts:
         rounds = result[part] if part == "tapes" else [result[part]]
@@ -163,10 +200,18 @@ def main() -> int:
                         help="time the window again with its frames' tapes kept by the rollout "
                              "(SimConfig.tape_memory's default) and recomputed by the backward (0), "
                              "two rounds each")
+    parser.add_argument("--kernels", action="store_true",
+                        help="also each kernel's device time a substep, of a window and a search call "
+                             "(torch's profiler; a CUDA device only)")
     parser.add_argument("--out", type=Path, default=Path("out/loss_throughput.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
-    results = [one(bag, config, args.rows, args.repeats, args.compare, args.tapes) for bag in args.bags]
+    if args.kernels and not resolve_device(config.identify.device).startswith("cuda"):
+        parser.error(f"--kernels needs a CUDA device, not {args.device!r}: on the CPU "
+                     "torch's profiler does not see Warp's kernels (benchmarks/sim_kernel_profile.py "
+                     "times them one launch at a time)")
+    results = [one(bag, config, args.rows, args.repeats, args.compare, args.tapes, args.kernels)
+               for bag in args.bags]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(plain({
         "benchmark": "loss_throughput", "device": args.device, "host": platform.node(),

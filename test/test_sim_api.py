@@ -882,3 +882,31 @@ def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monk
         assert any(name.startswith("grid_update") for name in times), times
         assert all(t > 0 for t in times.values())
     assert result["frame_s"]["forward"] > 0 and result["frame_s"]["backward"] > 0
+
+
+@pytest.mark.skipif(DEVICE == "cpu", reason="torch's profiler sees Warp's kernels on a CUDA device: "
+                                            "run with MOSIV_TEST_DEVICE=cuda:0")
+def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(capsys, monkeypatch, tmp_path):
+    """``benchmarks/loss_throughput.py --kernels``: a window's kernels forward and backward, a search's."""
+    import importlib.util
+    import json
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("loss_throughput", root / "benchmarks" / "loss_throughput.py")
+    benchmark = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(benchmark)
+    out = tmp_path / "kernels.json"
+    monkeypatch.setattr(sys, "argv", ["loss_throughput.py", str(root / "bags" / "pressed_cube"), "--device", DEVICE,
+                                      "--params-file", str(root / "config" / "mosiv.yaml"), "--rows", "2",
+                                      "--repeats", "1", "--kernels", "--out", str(out)])
+    assert benchmark.main() == 0
+    kernels = json.loads(out.read_text())["results"][0]["kernels"]
+    window, search = kernels["window"], kernels["search"]
+    assert window["substeps"] > 0 and search["substeps"] > 0
+    names = set(window["per_substep_us"])
+    assert {"g2p_forward", "g2p_adjoint_forward"} <= names, names
+    assert any("p2g" in name and name.endswith("_backward") for name in names), names
+    assert not any(name.endswith("_backward") for name in search["per_substep_us"])  # the search has no gradient
+    # a substep's adjoint once (a backward that recomputes its frames launches G2P again)
+    assert 0 < window["launches"]["g2p_adjoint_forward"] <= window["substeps"]
