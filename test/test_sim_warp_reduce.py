@@ -69,31 +69,6 @@ def test_scatter_sums_what_every_lane_adds(n, skip):
     assert np.allclose(grid_p.numpy(), want_p, rtol=1e-5, atol=1e-3)
 
 
-def test_scatter_gradient_is_the_node_gradient_of_each_lane():
-    load_modules(DEVICE, [__name__])
-    n = 300
-    rng = np.random.default_rng(1)
-    keys = wp.array(_keys(n, rng), dtype=int, device=DEVICE)
-    values = wp.array(rng.normal(size=n).astype(np.float32), dtype=float, device=DEVICE,
-                      requires_grad=True)
-    grid_m = wp.zeros(80, dtype=float, device=DEVICE, requires_grad=True)
-    grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE, requires_grad=True)
-    tape = wp.Tape()
-    with tape:
-        wp.launch(_scatter_kernel, dim=n, inputs=[keys, values, 0], outputs=[grid_m, grid_p],
-                  device=DEVICE)
-    seed_m = rng.normal(size=80).astype(np.float32)
-    seed_p = rng.normal(size=(80, 3)).astype(np.float32)
-    grid_m.grad.assign(seed_m)
-    grid_p.grad.assign(seed_p)
-    tape.backward()
-    k = keys.numpy()
-    # d/dm of sum over offsets of seed_m[2k + o] (o + 1) m + seed_p[2k + o] . (m, -2m, i)
-    want = sum(seed_m[2 * k + o] * (o + 1) + seed_p[2 * k + o, 0] - 2 * seed_p[2 * k + o, 1]
-               for o in range(2))
-    assert np.allclose(values.grad.numpy(), want, rtol=1e-5, atol=1e-5)
-
-
 @pytest.mark.parametrize("n, skip", [(1000, 0), (45, 0), (1000, 4)])
 def test_add_sums_what_every_lane_adds(n, skip):
     load_modules(DEVICE, [__name__])
