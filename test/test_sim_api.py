@@ -886,7 +886,7 @@ def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monk
 
 @pytest.mark.skipif(DEVICE == "cpu", reason="torch's profiler sees Warp's kernels on a CUDA device: "
                                             "run with MOSIV_TEST_DEVICE=cuda:0")
-def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(capsys, monkeypatch, tmp_path):
+def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(monkeypatch, tmp_path):
     """``benchmarks/loss_throughput.py --kernels``: a window's kernels forward and backward, a search's."""
     import importlib.util
     import json
