@@ -409,15 +409,20 @@ def test_graph_runs_cover_a_frame_in_runs_that_frames_of_other_lengths_share():
     assert graph_runs(54) == [(0, 32), (32, 16), (48, 4), (52, 2)]
 
 
+def _ball_and_block() -> tuple[float, float, list, list[ObjectModel]]:
+    """dx, the floor's height, and an elastic ball beside a plastic block on it at spacing dx / 2."""
+    dx, floor = 0.02, 0.1
+    solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
+                                                                   (0.03, 0.04, 0.03), dx / 2)]
+    return dx, floor, solids, [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
+
+
 def test_cell_order_is_invisible_to_callers():
     # Two objects, two batches, per-particle velocities and volumes that differ by particle, given
     # with the particles and through the setters: the simulator sorted by cell must give, in the
     # callers' order, what the unsorted one gives (up to the order of float sums), and its last
     # state must continue the same way.
-    dx, floor = 0.02, 0.1
-    solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
-                                                                   (0.03, 0.04, 0.03), dx / 2)]
-    objects = [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
+    dx, floor, solids, objects = _ball_and_block()
     runs = {}
     for order in (False, True):
         config = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3),
@@ -461,10 +466,7 @@ def test_cell_order_is_invisible_to_callers():
 def test_a_queued_rollout_and_a_gradient_on_the_device_give_what_the_host_gets(order):
     # The fit's loss on a GPU reads a queued rollout's positions where they are and hands dL/dx
     # back there (identify.fit). Sorted by cell, both pass through the callers' order.
-    dx, floor = 0.02, 0.1
-    solids = [sphere((0.2, 0.2, floor + 0.06), 0.04, dx / 2), box((0.3, 0.2, floor + 0.04),
-                                                                   (0.03, 0.04, 0.03), dx / 2)]
-    objects = [ObjectModel("ball", "elastic", {"E": 3e4}), ObjectModel("block", "plastic", {})]
+    dx, floor, solids, objects = _ball_and_block()
     sim = scene(solids, objects, dx=dx, lo=(0, 0, 0), hi=(0.5, 0.4, 0.3), ground=Ground(height=floor),
                 velocities=[(0.5, 0.0, -1.0), (0.0, 0.0, 0.0)], n_batch=2, cell_order=order)
     assert (sim._order is not None) == order
@@ -861,17 +863,26 @@ def test_a_grid_that_g2p_clears_moves_as_one_cleared_whole():
         assert _equal(cleared_whole, cleared_by_g2p)
 
 
+_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _benchmark(name: str):
+    """The module of ``benchmarks/<name>.py``, loaded from its file (the folder is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, _ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monkeypatch):
     """``benchmarks/sim_kernel_profile.py`` runs: it once broke unnoticed when ``_substep``'s arguments changed."""
-    import importlib.util
     import json
     import sys
 
-    benchmarks = Path(__file__).resolve().parents[1] / "benchmarks"
-    monkeypatch.syspath_prepend(str(benchmarks))  # it imports sim_throughput's scene
-    spec = importlib.util.spec_from_file_location("sim_kernel_profile", benchmarks / "sim_kernel_profile.py")
-    profile = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(profile)
+    monkeypatch.syspath_prepend(str(_ROOT / "benchmarks"))  # it imports sim_throughput's scene
+    profile = _benchmark("sim_kernel_profile")
     monkeypatch.setattr(sys, "argv", ["sim_kernel_profile.py", "--device", DEVICE, "--particles", "500",
                                       "--repeats", "1"])
     assert profile.main() == 0
@@ -888,17 +899,13 @@ def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monk
                                             "run with MOSIV_TEST_DEVICE=cuda:0")
 def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(monkeypatch, tmp_path):
     """``benchmarks/loss_throughput.py --kernels``: a window's kernels forward and backward, a search's."""
-    import importlib.util
     import json
     import sys
 
-    root = Path(__file__).resolve().parents[1]
-    spec = importlib.util.spec_from_file_location("loss_throughput", root / "benchmarks" / "loss_throughput.py")
-    benchmark = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(benchmark)
+    benchmark = _benchmark("loss_throughput")
     out = tmp_path / "kernels.json"
-    monkeypatch.setattr(sys, "argv", ["loss_throughput.py", str(root / "bags" / "pressed_cube"), "--device", DEVICE,
-                                      "--params-file", str(root / "config" / "mosiv.yaml"), "--rows", "2",
+    monkeypatch.setattr(sys, "argv", ["loss_throughput.py", str(_ROOT / "bags" / "pressed_cube"), "--device", DEVICE,
+                                      "--params-file", str(_ROOT / "config" / "mosiv.yaml"), "--rows", "2",
                                       "--repeats", "1", "--kernels", "--out", str(out)])
     assert benchmark.main() == 0
     kernels = json.loads(out.read_text())["results"][0]["kernels"]
