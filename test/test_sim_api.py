@@ -556,12 +556,12 @@ def test_a_scene_without_colliders_updates_its_grid_as_the_kernel_with_their_cod
 
     Velocities and adjoints of a two-object contact on the ground near the walls, two parameter sets.
     """
-    from mosiv_ros.sim.simulator import SimState, _bind, _Grid, _State
+    from mosiv_ros.sim.simulator import _GRID_UPDATE_ADJOINTS, SimState, _bind, _Grid, _State
 
     sim = _two_balls(n_batch=2)
-    assert sim._grid_update is kernels.grid_update_for(0, 2)
+    assert sim._grid_update is kernels.grid_update_kernels(0, 2)[0]
     assert _two_balls(colliders=[Collider("sphere", (0.03,), np.array([0.0, 1.0]), np.array([[0.45, 0.2, 0.3]] * 2))
-                                 ])._grid_update is kernels.grid_update_for(kernels.MAX_COLLIDERS, 2)
+                                 ])._grid_update is kernels.grid_update_kernels(kernels.MAX_COLLIDERS, 2)[0]
     n_sub, dt = sim.time_step()
     total = 2 * sim.n_particles
     x = np.repeat(sim.initial_positions()[None], 2, axis=0).astype(np.float64)
@@ -579,15 +579,16 @@ def test_a_scene_without_colliders_updates_its_grid_as_the_kernel_with_their_cod
     box_lo, box_dims = sim._active_box(src)
     seed = np.random.default_rng(2).normal(size=(len(grids[0].v), 3)).astype(np.float32)
     velocities, adjoints = [], []
-    for kernel, grid in zip((kernels.grid_update_for(0, 2), kernels.grid_update_for(kernels.MAX_COLLIDERS, 2)), grids,
-                            strict=True):
+    for colliders, grid in zip((0, kernels.MAX_COLLIDERS), grids, strict=True):
+        kernel, adjoint = kernels.grid_update_kernels(colliders, 2)
         grid.v.zero_()
-        tape = wp.Tape()
-        with tape:
-            wp.launch(kernel, int(np.prod(box_dims)) * 2 * 2, device=sim.device, inputs=_bind(kernel, {
-                "grid": grid, "collider": sim._colliders, "substep": 0, "box_lo": wp.vec3i(*box_lo),
-                "box_dims": wp.vec3i(*box_dims), "own": sim._steps}, sim._scene))
-        tape.backward(grads={grid.v: wp.array(seed, dtype=wp.vec3, device=sim.device)})
+        args = _bind(kernel, {"grid": grid, "collider": sim._colliders, "substep": 0, "box_lo": wp.vec3i(*box_lo),
+                              "box_dims": wp.vec3i(*box_dims), "own": sim._steps}, sim._scene)
+        wp.launch(kernel, int(np.prod(box_dims)) * 2 * 2, device=sim.device, inputs=args)
+        grid.v.grad.assign(seed)
+        labels = [arg.label for arg in kernel.adj.args]
+        wp.launch(adjoint, int(np.prod(box_dims)) * 2 * 2, device=sim.device,
+                  inputs=[*args, *(args[labels.index(name)].grad for name in _GRID_UPDATE_ADJOINTS)])
         velocities.append(grid.v.numpy())
         adjoints.append([a.grad.numpy() for a in (grid.m, grid.p)])
     assert np.count_nonzero(np.abs(velocities[0]).max(axis=1)) > 100

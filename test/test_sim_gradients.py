@@ -333,6 +333,93 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
         assert np.allclose(array.grad.numpy(), warps[name], rtol=1e-5, atol=1e-6 * np.abs(warps[name]).max()), name
 
 
+@pytest.mark.parametrize("colliders, objects", [(0, 1), (0, 2), (2, 2), (0, 3)])
+def test_grid_update_written_adjoint_adds_what_warps_generated_adjoint_adds(colliders, objects):
+    """The grid update's written adjoint against Warp's generated adjoint of the update, on random inputs.
+
+    Two rows of ``objects`` fields whose masses overlap in a band of the grid (the object
+    contact), node accelerations, a tilted ground under about a third of the nodes, a sphere
+    and a rotated box among the nodes where the kernel has the colliders' code, walls on every
+    face, random velocity adjoints: every input's adjoint within float32 rounding of Warp's,
+    and the velocities those of the function Warp differentiates.
+    """
+    import warp as wp
+
+    from mosiv_ros.sim import kernels
+    from mosiv_ros.sim.params import REPLICAS
+    from mosiv_ros.sim.simulator import _GRID_UPDATE_ADJOINTS
+
+    forward, written = kernels.grid_update_kernels(colliders, objects)
+    generated = wp.Kernel(forward.func, key=f"grid_update_{colliders}_{objects}_with_generated_adjoint",
+                          module=wp.get_module(__name__), options={"enable_backward": True})
+    labels = [arg.label for arg in forward.adj.args]
+    assert [arg.label for arg in written.adj.args] == [*labels, *(f"adj_{name}" for name in _GRID_UPDATE_ADJOINTS)]
+    rng = np.random.default_rng(5)
+    B, dims, dx = 2, (8, 7, 9), 0.1
+    G = int(np.prod(dims))
+    ii, jj, ll = (axis.ravel() for axis in np.meshgrid(*map(np.arange, dims), indexing="ij"))
+    x_node = np.stack([ii, jj, ll], axis=1) * dx
+
+    def array(values, dtype, grad=True):
+        return wp.array(np.asarray(values, np.float32), dtype=dtype, device=DEVICE, requires_grad=grad)
+
+    # field k holds mass in a slab along x that overlaps the next field's, and none elsewhere
+    masses = np.zeros((B, objects, G))
+    for k in range(objects):
+        inside = (ii >= 2 * k + 1) & (ii <= 2 * k + 4) & (ll >= 1) & (ll <= 6)
+        masses[:, k, inside] = rng.uniform(0.2, 2.0, size=(B, inside.sum()))
+    masses[masses > 0] *= rng.random(np.count_nonzero(masses)) > 0.1  # some empty nodes among them
+    momenta = rng.normal(size=(B * objects * G, 3)) * masses.reshape(-1, 1)
+    size = (colliders or 1) * 2  # the poses of two substeps
+    inputs = {"grid_m": array(masses.ravel(), float), "grid_p": array(momenta, wp.vec3),
+              "grid_a": array(rng.normal(size=(B * objects * G, 3)), wp.vec3),
+              "uniform": array(np.repeat([0.1, -0.2, -9.8, 0.3, 0.0, -9.6], REPLICAS), float),
+              "friction": array(np.repeat(rng.uniform(0.1, 0.8, B * objects), REPLICAS), float),
+              "ground_normal": array(np.repeat([0.1, 0.2, 1.0, -0.1, 0.05, 0.9], REPLICAS), float),
+              "ground_friction": array(np.repeat([0.4, 0.7], REPLICAS), float)}
+    ranks = wp.array(np.arange(objects, dtype=np.int32)[::-1].copy(), dtype=int, device=DEVICE)  # the last leads
+    given = {**inputs, "normal_rank": ranks, "ranked_object": ranks,
+             "ground_height": array(np.repeat([0.3, 0.25], REPLICAS), float), "has_ground": 1,
+             "collider_shape": wp.array([0, 1], dtype=int, device=DEVICE),
+             "collider_size": array([[0.2, 0.0, 0.0], [0.15, 0.1, 0.2]], wp.vec3, grad=False),
+             "collider_friction": array([0.3, 0.6], float, grad=False),
+             "collider_pos": array(np.tile([[0.45, 0.3, 0.5], [0.25, 0.35, 0.35]], (size // 2, 1)), wp.vec3,
+                                   grad=False),
+             "collider_rot": array(np.tile([[0.0, 0.0, 0.0, 1.0], [0.0, 0.2588, 0.0, 0.9659]], (size // 2, 1)),
+                                   wp.quat, grad=False),
+             "collider_vel": array(rng.normal(size=(size, 3)), wp.vec3, grad=False),
+             "collider_omega": array(rng.normal(size=(size, 3)), wp.vec3, grad=False),
+             "substep": 1, "collider_count": 2, "n_nodes": G, "dims": wp.vec3i(*dims), "box_lo": wp.vec3i(0, 0, 0),
+             "box_dims": wp.vec3i(*dims), "lo": wp.vec3(0.0), "dx": dx,
+             "own_dt": array([0.01, 0.02], float, grad=False),
+             "grid_v": array(np.zeros((B * objects * G, 3)), wp.vec3)}
+    args = [given[name] for name in labels]
+    tape = wp.Tape()
+    with tape:
+        wp.launch(generated, B * objects * G, inputs=args, device=DEVICE)
+    velocities = given["grid_v"].numpy().copy()
+    given["grid_v"].zero_()
+    wp.launch(forward, B * objects * G, inputs=args, device=DEVICE)
+    assert np.array_equal(given["grid_v"].numpy(), velocities)
+    given["grid_v"].grad.assign(rng.normal(size=(B * objects * G, 3)).astype(np.float32))
+    tape.backward()
+    warps = {name: array.grad.numpy().copy() for name, array in inputs.items()}
+    for array in inputs.values():
+        array.grad.zero_()
+    wp.launch(written, B * objects * G, inputs=[*args, *(given[name].grad for name in _GRID_UPDATE_ADJOINTS)],
+              device=DEVICE)
+    for name, array in inputs.items():
+        if name != "friction" or objects > 1:  # the objects' friction acts only in their contact
+            assert np.abs(warps[name]).max() > 0, name
+        assert np.allclose(array.grad.numpy(), warps[name], rtol=1e-5, atol=1e-6 * np.abs(warps[name]).max()), name
+    # each branch was taken: the ground under a third of the nodes, the walls, contact, the colliders
+    held = np.abs(velocities).max(axis=1).reshape(B, objects, G) > 0
+    on_ground = x_node @ np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0]) < 0.3
+    assert 0.2 < on_ground.mean() < 0.5 and held[:, :, on_ground].any()
+    shared = (masses > 0).sum(axis=1) > 1
+    assert (objects == 1) == (not shared.any())
+
+
 def test_p2g_scatter_adjoint_adds_what_warps_generated_adjoint_of_its_atomics_adds():
     """``kernels.scatter_plane``'s written adjoint against Warp's of the same scatter as plain atomics.
 

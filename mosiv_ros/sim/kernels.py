@@ -35,15 +35,17 @@ mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two object
 corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
-accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's, which
-is written out (``g2p_adjoint``: Warp's kept 255 registers live on a GPU), and P2G's scatter,
-whose adjoint Warp calls in place of its own (``scatter_plane``'s). Warp's adjoint of a
-loop whose bound is known only at run time gets a differentiable value the loop carries wrong
-(a sum over a node's fields came out inf and NaN), so ``grid_update`` is built for the scene's
-object count, and its differentiable sums over a node's fields are loops over that constant,
-unrolled (``grid_update_for``); it runs one thread per field node. The loops over a node's
-fields that give only thresholds and integers (``node_total``, ``present_fields``) sit in
-functions, whose calls the adjoint replays as the forward ran them. The grid pass launches over
+accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's and
+the grid update's, which are written out (``g2p_adjoint``: Warp's kept 255 registers live on a
+GPU; ``grid_update_kernels``), and P2G's scatter, whose adjoint Warp calls in place of its own
+(``scatter_plane``'s). Tests hold each written adjoint to the one Warp generates from the same
+forward function, which therefore stays differentiable by Warp. Warp's adjoint of a loop whose
+bound is known only at run time gets a differentiable value the loop carries wrong (a sum over
+a node's fields came out inf and NaN), so ``grid_update`` is built for the scene's object
+count, and its differentiable sums over a node's fields are loops over that constant, unrolled
+(``grid_update_kernels``); it runs one thread per field node. The loops over a node's fields
+that give only thresholds and integers (``node_total``, ``present_fields``) sit in functions,
+whose calls the adjoint replays as the forward ran them. The grid pass launches over
 a box of nodes (``field_node``): the whole grid, or on the CPU, where every thread costs, the
 nodes the particles' stencils can reach (``Simulator._active_box``).
 """
@@ -481,22 +483,248 @@ def present_fields(grid_m: wp.array(dtype=float), first: int, n_nodes: int, n_ob
     return wp.vec2i(count, lead_rank)
 
 
-@functools.cache
-def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
-    """``grid_update`` for scenes of ``objects`` objects and at most ``colliders`` colliders.
+@wp.func
+def node_place(index: int, objects: int, n_nodes: int, dims: wp.vec3i, lo: wp.vec3, dx: float):
+    """Field node ``index``'s batch row, object, node, the node's (i, j, l) and its position."""
+    batch = index // (objects * n_nodes)
+    k = (index // n_nodes) % objects
+    node = index % n_nodes
+    i = node // (dims[1] * dims[2])
+    j = (node // dims[2]) % dims[1]
+    l = node % dims[2]
+    return batch, k, node, i, j, l, lo + wp.vec3(float(i), float(j), float(l)) * dx
 
-    Both are constants of its code, and each such kernel is a Warp module of its own, built
-    when a scene first needs it (``Simulator``; one module of every variant would rebuild all
-    of them for each new one).
+
+@wp.func
+def coulomb_adjoint(v_rel: wp.vec3, n: wp.vec3, friction: float, adj: wp.vec3):
+    """The adjoints of ``coulomb``'s v_rel, n and friction, given the adjoint ``adj`` of its result."""
+    vn = wp.dot(v_rel, n)
+    adj_v = adj
+    adj_n = wp.vec3(0.0)
+    adj_friction = float(0.0)
+    if vn < 0.0:
+        adj_v = wp.vec3(0.0)
+        vt = v_rel - n * vn
+        t = wp.length(vt)
+        mu = wp.max(friction, 0.0)
+        remaining = t + mu * vn
+        if remaining > 0.0:  # the result vt * (remaining / t)
+            scale = remaining / t
+            adj_scale = wp.dot(vt, adj)
+            adj_remaining = adj_scale / t
+            adj_t = adj_remaining - adj_scale * scale / t
+            adj_vn = adj_remaining * mu
+            if friction > 0.0:
+                adj_friction = adj_remaining * vn
+            adj_vt = adj * scale + vt * (adj_t / t)
+            # vt = v_rel - n vn, vn = v_rel . n
+            adj_vn = adj_vn - wp.dot(adj_vt, n)
+            adj_v = adj_vt + n * adj_vn
+            adj_n = v_rel * adj_vn - adj_vt * vn
+    return adj_v, adj_n, adj_friction
+
+
+@wp.func
+def add_field_velocity_adjoint(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3),
+                               adj_grid_m: wp.array(dtype=float), adj_grid_p: wp.array(dtype=wp.vec3),
+                               adj_grid_a: wp.array(dtype=wp.vec3), adj_uniform: wp.array(dtype=float),
+                               batch: int, index: int, dt: float, adj_v: wp.vec3, adj_m: float):
+    """Add the adjoints of ``field_velocity``'s inputs for the adjoint ``adj_v`` of its result.
+
+    ``adj_m``: more of the node's mass adjoint, added with its own.
+    """
+    m = grid_m[index]
+    adj_mass = adj_m
+    if m > 0.0:
+        adj_mass = adj_mass - wp.dot(adj_v, divide(grid_p[index], m)) / m
+        wp.atomic_add(adj_grid_p, index, divide(adj_v, m))
+        adj_a = adj_v * dt
+        if adj_uniform.shape[0] > 0:
+            for c in range(3):
+                add_param(adj_uniform, 3 * batch + c, index, adj_a[c])
+        if adj_grid_a.shape[0] > 0:
+            wp.atomic_add(adj_grid_a, index, adj_a)
+    wp.atomic_add(adj_grid_m, index, adj_mass)
+
+
+@wp.func
+def add_mass_gradient_adjoint(adj_grid_m: wp.array(dtype=float), offset: int, i: int, j: int, l: int,
+                              dims: wp.vec3i, inv_dx: float, adj_g: wp.vec3):
+    """Add the adjoints of the masses ``mass_gradient`` read, given the adjoint ``adj_g`` of its result."""
+    i0 = wp.max(i - 1, 0)
+    i1 = wp.min(i + 1, dims[0] - 1)
+    j0 = wp.max(j - 1, 0)
+    j1 = wp.min(j + 1, dims[1] - 1)
+    l0 = wp.max(l - 1, 0)
+    l1 = wp.min(l + 1, dims[2] - 1)
+    a = adj_g * inv_dx
+    ax = a[0] / float(i1 - i0)
+    ay = a[1] / float(j1 - j0)
+    az = a[2] / float(l1 - l0)
+    wp.atomic_add(adj_grid_m, offset + node_index(i1, j, l, dims), ax)
+    wp.atomic_add(adj_grid_m, offset + node_index(i0, j, l, dims), -ax)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j1, l, dims), ay)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j0, l, dims), -ay)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j, l1, dims), az)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j, l0, dims), -az)
+
+
+@wp.func
+def ground_plane(ground_height: wp.array(dtype=float), ground_normal: wp.array(dtype=float), batch: int,
+                 index: int, x_node: wp.vec3, dx: float):
+    """The ground's unit normal, its parameters' normal vector, and whether node ``x_node`` is on the ground."""
+    raw = wp.vec3(param(ground_normal, 3 * batch, index), param(ground_normal, 3 * batch + 1, index),
+                  param(ground_normal, 3 * batch + 2, index))
+    n = wp.normalize(raw)
+    on = int(0)
+    if wp.dot(n, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
+        on = 1
+    return n, raw, on
+
+
+@wp.func
+def collider_surface(c: int, substep: int, collider_count: int, x_node: wp.vec3, collider_shape: wp.array(dtype=int),
+                     collider_size: wp.array(dtype=wp.vec3), collider_pos: wp.array(dtype=wp.vec3),
+                     collider_rot: wp.array(dtype=wp.quat), collider_vel: wp.array(dtype=wp.vec3),
+                     collider_omega: wp.array(dtype=wp.vec3)):
+    """Whether node ``x_node`` lies inside collider ``c`` at ``substep``, with its outward normal and velocity there."""
+    inside = int(0)
+    normal = wp.vec3(0.0)
+    v_col = wp.vec3(0.0)
+    if c < collider_count:
+        row = substep * collider_count + c
+        r = x_node - collider_pos[row]
+        local = wp.quat_rotate_inv(collider_rot[row], r)
+        sd = collider_sdf(collider_shape[c], collider_size[c], local)
+        if sd[0] < 0.0:
+            inside = 1
+            normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
+            v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
+    return inside, normal, v_col
+
+
+@wp.func
+def wall_mask(vel: wp.vec3, i: int, j: int, l: int, dims: wp.vec3i):
+    """1 for each velocity component the slip walls keep at node (i, j, l), 0 for one into a face within WALL nodes."""
+    mask = wp.vec3(1.0)
+    if (i < WALL and vel[0] < 0.0) or (i >= dims[0] - WALL and vel[0] > 0.0):
+        mask[0] = 0.0
+    if (j < WALL and vel[1] < 0.0) or (j >= dims[1] - WALL and vel[1] > 0.0):
+        mask[1] = 0.0
+    if (l < WALL and vel[2] < 0.0) or (l >= dims[2] - WALL and vel[2] > 0.0):
+        mask[2] = 0.0
+    return mask
+
+
+@functools.cache
+def grid_update_kernels(colliders: int, objects: int) -> tuple[wp.Kernel, wp.Kernel]:
+    """``grid_update`` and its written adjoint for ``objects`` objects and at most ``colliders`` colliders.
+
+    Both counts are constants of their code, and each such pair is a Warp module of its own,
+    built when a scene first needs it (``Simulator``; one module of every variant would rebuild
+    all of them for each new one).
 
     - The sums over a node's fields (the object contact's centre of mass) are unrolled over the
-      ``objects`` fields (module docstring); a lone object's kernel has no contact code.
-    - The colliders' projections are unrolled too, and Warp's adjoint keeps their intermediates
-      live: on an H200 the adjoint of a sample scene's grid took 246 registers a thread and
-      15.7-16.3 us a launch with two colliders' code, 120 and 11.4-12.1 us without
-      (benchmarks/RESULTS.md, "The search's closest ends raced in step"). So a scene without
-      colliders asks for 0.
+      ``objects`` fields (module docstring); a lone object's kernels have no contact code.
+    - The colliders' projections are unrolled too. Warp's adjoint of the grid update (before the
+      written one) kept their intermediates live: on an H200 it took 246 registers a thread and
+      15.7-16.3 us a launch of a sample scene's grid with two colliders' code, 120 and
+      11.4-12.1 us without (benchmarks/RESULTS.md, "The search's closest ends raced in step").
+      So a scene without colliders asks for 0.
     """
+    key = f"grid_update_{colliders}_{objects}"
+    module = wp.context.get_module(f"{__name__}.{key}")
+    module.options["max_unroll"] = max(objects, colliders, module.options.get("max_unroll", 0))
+
+    def contact_sums(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), grid_a: wp.array(dtype=wp.vec3),
+                     uniform: wp.array(dtype=float), friction: wp.array(dtype=float), batch: int, first: int,
+                     n_nodes: int, present: float, dt: float):
+        """The sums over the fields present at a node: mass, momentum after the effects (m v), mu m."""
+        m_total = float(0.0)
+        p_total = wp.vec3(0.0)
+        mu_total = float(0.0)
+        for other in range(objects):  # unrolled: a constant
+            at = first + other * n_nodes
+            m_other = grid_m[at]
+            if m_other > present:
+                m_total = m_total + m_other
+                p_total = p_total + field_velocity(grid_m, grid_p, grid_a, uniform, batch, at, dt) * m_other
+                mu_total = mu_total + param(friction, batch * objects + other, at) * m_other
+        return m_total, p_total, mu_total
+
+    def add_contact_sums_adjoint(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3),
+                                 grid_a: wp.array(dtype=wp.vec3), uniform: wp.array(dtype=float),
+                                 friction: wp.array(dtype=float), adj_grid_m: wp.array(dtype=float),
+                                 adj_grid_p: wp.array(dtype=wp.vec3), adj_grid_a: wp.array(dtype=wp.vec3),
+                                 adj_uniform: wp.array(dtype=float), adj_friction: wp.array(dtype=float),
+                                 batch: int, first: int, n_nodes: int, present: float, dt: float,
+                                 adj_m_total: float, adj_p_total: wp.vec3, adj_mu_total: float):
+        """Add the adjoints of ``contact_sums``' inputs, given those of its three sums."""
+        for other in range(objects):
+            at = first + other * n_nodes
+            m_other = grid_m[at]
+            if m_other > present:
+                mu_other = param(friction, batch * objects + other, at)
+                if adj_friction.shape[0] > 0:
+                    add_param(adj_friction, batch * objects + other, at, adj_mu_total * m_other)
+                v_other = field_velocity(grid_m, grid_p, grid_a, uniform, batch, at, dt)
+                add_field_velocity_adjoint(grid_m, grid_p, adj_grid_m, adj_grid_p, adj_grid_a, adj_uniform, batch, at,
+                                           dt, adj_p_total * m_other,
+                                           adj_m_total + wp.dot(adj_p_total, v_other) + adj_mu_total * mu_other)
+
+    def object_contact(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), grid_a: wp.array(dtype=wp.vec3),
+                       uniform: wp.array(dtype=float), friction: wp.array(dtype=float),
+                       normal_rank: wp.array(dtype=int), ranked_object: wp.array(dtype=int), batch: int, k: int,
+                       node: int, index: int, i: int, j: int, l: int, n_nodes: int, dims: wp.vec3i, dx: float,
+                       dt: float, vel: wp.vec3):
+        """The velocity ``vel`` of field k at a node after the object contact there, and what its adjoint needs.
+
+        Returns the velocity; 1 if the field approached the others and was projected (else 0);
+        the sign that turns the lead field's mass gradient into k's outward normal n (-1 when k
+        is the lead); the lead field's offset and mass gradient; the node's index in field 0;
+        the mass a field needs to be present; n; the sums of mass and mu m over the fields
+        present; k's friction, the pair's, and the centre-of-mass velocity v_cm.
+        """
+        m = grid_m[index]
+        first = batch * objects * n_nodes + node
+        present = node_total(grid_m, first, n_nodes, objects) * CONTACT_MASS_FRACTION
+        fields = present_fields(grid_m, first, n_nodes, objects, present, normal_rank)
+        touching = int(0)
+        sign = float(1.0)
+        lead_offset = int(0)
+        g_lead = wp.vec3(0.0)
+        n = wp.vec3(0.0)
+        m_total = float(0.0)
+        mu_total = float(0.0)
+        mu_k = float(0.0)
+        mu_pair = float(0.0)
+        v_cm = wp.vec3(0.0)
+        out = vel
+        if fields[0] > 1 and m > present:
+            lead = ranked_object[fields[1]]
+            lead_offset = (batch * objects + lead) * n_nodes
+            g_lead = mass_gradient(grid_m, lead_offset, i, j, l, dims, 1.0 / dx)
+            g_len = wp.length(g_lead)
+            if k == lead:  # the outward normal of k towards the others: into the lead, or out of it
+                sign = -1.0
+            if g_len > 0.0:
+                n = divide(g_lead, g_len) * sign  # at a fringe of the lead object g_len is tiny too
+                m_total, p_total, mu_total = sums(grid_m, grid_p, grid_a, uniform, friction, batch, first, n_nodes,
+                                                  present, dt)
+                mu_k = param(friction, batch * objects + k, index)
+                mu_pair = 0.5 * (mu_k + (mu_total - mu_k * m) / (m_total - m))
+                v_cm = divide(p_total, m_total)
+                rel = vel - v_cm
+                if wp.dot(rel, n) > 0.0:
+                    # approaching: the others are a surface of outward normal -n
+                    touching = 1
+                    out = v_cm + coulomb(rel, -n, mu_pair)
+        return out, touching, sign, lead_offset, g_lead, first, present, n, m_total, mu_total, mu_k, mu_pair, v_cm
+
+    sums = wp.Function(contact_sums, key=f"contact_sums_{objects}", namespace="", module=module)
+    sums_adjoint = wp.Function(add_contact_sums_adjoint, key=f"add_contact_sums_adjoint_{objects}",
+                               namespace="", module=module)
+    contact = wp.Function(object_contact, key=f"object_contact_{objects}", namespace="", module=module)
 
     def grid_update(
         grid_m: wp.array(dtype=float),
@@ -544,82 +772,159 @@ def grid_update_for(colliders: int, objects: int) -> wp.Kernel:
             # there is zero (or is grid_p, zero here), or on a grid that G2P clears a finite
             # velocity of an earlier substep of the rollout (simulator._Grid)
             return
-        batch = index // (objects * n_nodes)
-        k = (index // n_nodes) % objects
-        node = index % n_nodes
-        i = node // (dims[1] * dims[2])
-        j = (node // dims[2]) % dims[1]
-        l = node % dims[2]
-        x_node = lo + wp.vec3(float(i), float(j), float(l)) * dx
-        vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, own_dt[batch])
+        batch, k, node, i, j, l, x_node = node_place(index, objects, n_nodes, dims, lo, dx)
+        dt = own_dt[batch]
+        vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, dt)
 
         if wp.static(objects > 1):
-            first = batch * objects * n_nodes + node
-            present = node_total(grid_m, first, n_nodes, objects) * CONTACT_MASS_FRACTION
-            fields = present_fields(grid_m, first, n_nodes, objects, present, normal_rank)
-            if fields[0] > 1 and m > present:
-                lead = ranked_object[fields[1]]
-                g_lead = mass_gradient(grid_m, (batch * objects + lead) * n_nodes, i, j, l, dims,
-                                       1.0 / dx)
-                g_len = wp.length(g_lead)
-                if g_len > 0.0:
-                    # outward normal of field k towards the others: into the lead object, or out of it
-                    # when k is the lead
-                    n = divide(g_lead, g_len)  # at a fringe of the lead object g_len is tiny too
-                    if k == lead:
-                        n = -n
-                    # the sums over the fields present: mass, momentum after the effects, mu m
-                    m_total = float(0.0)
-                    p_total = wp.vec3(0.0)
-                    mu_total = float(0.0)
-                    for other in range(objects):  # unrolled: a constant
-                        at = first + other * n_nodes
-                        m_other = grid_m[at]
-                        if m_other > present:
-                            m_total = m_total + m_other
-                            p_total = p_total + field_velocity(grid_m, grid_p, grid_a, uniform, batch, at,
-                                                               own_dt[batch]) * m_other
-                            mu_total = mu_total + param(friction, batch * objects + other, at) * m_other
-                    mu_k = param(friction, batch * objects + k, index)
-                    mu_pair = 0.5 * (mu_k + (mu_total - mu_k * m) / (m_total - m))
-                    v_cm = divide(p_total, m_total)
-                    rel = vel - v_cm
-                    if wp.dot(rel, n) > 0.0:
-                        # approaching: the others are a surface of outward normal -n
-                        vel = v_cm + coulomb(rel, -n, mu_pair)
-
+            vel, touching, sign, lead_offset, g_lead, first, present, n, m_total, mu_total, mu_k, mu_pair, v_cm = (
+                contact(grid_m, grid_p, grid_a, uniform, friction, normal_rank, ranked_object, batch, k, node, index,
+                        i, j, l, n_nodes, dims, dx, dt, vel))
         if has_ground != 0:
-            n_ground = wp.normalize(wp.vec3(param(ground_normal, 3 * batch, index),
-                                            param(ground_normal, 3 * batch + 1, index),
-                                            param(ground_normal, 3 * batch + 2, index)))
-            if wp.dot(n_ground, x_node) - param(ground_height, batch, index) < GROUND_SNAP * dx:
+            n_ground, raw, on = ground_plane(ground_height, ground_normal, batch, index, x_node, dx)
+            if on != 0:
                 vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
         for c in range(colliders):
-            if c < collider_count:
-                row = substep * collider_count + c
-                r = x_node - collider_pos[row]
-                local = wp.quat_rotate_inv(collider_rot[row], r)
-                sd = collider_sdf(collider_shape[c], collider_size[c], local)
-                if sd[0] < 0.0:
-                    normal = wp.quat_rotate(collider_rot[row], wp.vec3(sd[1], sd[2], sd[3]))
-                    v_col = collider_vel[row] + wp.cross(collider_omega[row], r)
-                    vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+            inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
+                                                     collider_pos, collider_rot, collider_vel, collider_omega)
+            if inside != 0:
+                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
         # slip walls: no velocity into a domain face within WALL nodes of it
-        vx = vel[0]
-        vy = vel[1]
-        vz = vel[2]
-        if (i < WALL and vx < 0.0) or (i >= dims[0] - WALL and vx > 0.0):
-            vx = 0.0
-        if (j < WALL and vy < 0.0) or (j >= dims[1] - WALL and vy > 0.0):
-            vy = 0.0
-        if (l < WALL and vz < 0.0) or (l >= dims[2] - WALL and vz > 0.0):
-            vz = 0.0
-        grid_v[index] = wp.vec3(vx, vy, vz)
+        grid_v[index] = wp.cw_mul(vel, wall_mask(vel, i, j, l, dims))
 
-    key = f"grid_update_{colliders}_{objects}"
-    module = wp.context.get_module(f"{__name__}.{key}")
-    module.options["max_unroll"] = max(objects, colliders, module.options.get("max_unroll", 0))
-    return wp.Kernel(grid_update, key=key, module=module)
+    def grid_update_adjoint(
+        grid_m: wp.array(dtype=float),
+        grid_p: wp.array(dtype=wp.vec3),
+        grid_a: wp.array(dtype=wp.vec3),
+        uniform: wp.array(dtype=float),
+        friction: wp.array(dtype=float),
+        normal_rank: wp.array(dtype=int),
+        ranked_object: wp.array(dtype=int),
+        ground_height: wp.array(dtype=float),
+        ground_normal: wp.array(dtype=float),
+        ground_friction: wp.array(dtype=float),
+        has_ground: int,
+        collider_shape: wp.array(dtype=int),
+        collider_size: wp.array(dtype=wp.vec3),
+        collider_friction: wp.array(dtype=float),
+        collider_pos: wp.array(dtype=wp.vec3),
+        collider_rot: wp.array(dtype=wp.quat),
+        collider_vel: wp.array(dtype=wp.vec3),
+        collider_omega: wp.array(dtype=wp.vec3),
+        substep: int,
+        collider_count: int,
+        n_nodes: int,
+        dims: wp.vec3i,
+        box_lo: wp.vec3i,
+        box_dims: wp.vec3i,
+        lo: wp.vec3,
+        dx: float,
+        own_dt: wp.array(dtype=float),
+        grid_v: wp.array(dtype=wp.vec3),
+        adj_grid_m: wp.array(dtype=float),
+        adj_grid_p: wp.array(dtype=wp.vec3),
+        adj_grid_a: wp.array(dtype=wp.vec3),
+        adj_uniform: wp.array(dtype=float),
+        adj_friction: wp.array(dtype=float),
+        adj_ground_normal: wp.array(dtype=float),
+        adj_ground_friction: wp.array(dtype=float),
+        adj_grid_v: wp.array(dtype=wp.vec3),
+    ):
+        """The adjoint of ``grid_update``, written out: adds to the adjoints of its inputs as Warp's would.
+
+        The first arguments are ``grid_update``'s, then the adjoints (``.grad``) of its arrays
+        that carry one (the colliders' arrays and the ground's height, read only in tests, carry
+        none). The node's velocity is computed again as the forward did, keeping the input of
+        each projection; the adjoint then runs through them last first. Every adjoint is added
+        atomically: a field node's contact adds to the other fields' nodes and, through the
+        contact normal, to the lead field's neighbours. Warp's generated adjoint replayed the
+        whole forward with every intermediate live (148 registers a thread on an H200, and the
+        costliest kernel of a sample bag's backward substep, benchmarks/RESULTS.md).
+        """
+        index = field_node(wp.tid(), box_lo, box_dims, dims)
+        m = grid_m[index]
+        if m <= 0.0:
+            return
+        batch, k, node, i, j, l, x_node = node_place(index, objects, n_nodes, dims, lo, dx)
+        dt = own_dt[batch]
+        vel = field_velocity(grid_m, grid_p, grid_a, uniform, batch, index, dt)
+        v_field = vel
+        if wp.static(objects > 1):  # the object contact, and what its adjoint needs
+            vel, touching, sign, lead_offset, g_lead, first, present, n, m_total, mu_total, mu_k, mu_pair, v_cm = (
+                contact(grid_m, grid_p, grid_a, uniform, friction, normal_rank, ranked_object, batch, k, node, index,
+                        i, j, l, n_nodes, dims, dx, dt, v_field))
+        v_contact = vel
+        on = int(0)
+        n_ground = wp.vec3(0.0)
+        raw = wp.vec3(0.0)
+        mu_ground = float(0.0)
+        if has_ground != 0:
+            n_ground, raw, on = ground_plane(ground_height, ground_normal, batch, index, x_node, dx)
+            if on != 0:
+                mu_ground = param(ground_friction, batch, index)
+                vel = coulomb(vel, n_ground, mu_ground)
+        v_ground = vel
+        for c in range(colliders):
+            inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
+                                                     collider_pos, collider_rot, collider_vel, collider_omega)
+            if inside != 0:
+                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+
+        adj = wp.cw_mul(adj_grid_v[index], wall_mask(vel, i, j, l, dims))
+        for last in range(colliders):  # the colliders last first, each one's input found again
+            c = colliders - 1 - last
+            v_in = v_ground
+            for d in range(colliders):
+                if d < c:
+                    inside, normal, v_col = collider_surface(d, substep, collider_count, x_node, collider_shape,
+                                                             collider_size, collider_pos, collider_rot, collider_vel,
+                                                             collider_omega)
+                    if inside != 0:
+                        v_in = v_col + coulomb(v_in - v_col, normal, collider_friction[d])
+            inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
+                                                     collider_pos, collider_rot, collider_vel, collider_omega)
+            if inside != 0:
+                adj_rel, adj_normal, adj_mu = coulomb_adjoint(v_in - v_col, normal, collider_friction[c], adj)
+                adj = adj_rel
+        if on != 0:
+            adj_v, adj_n, adj_mu = coulomb_adjoint(v_contact, n_ground, mu_ground, adj)
+            adj = adj_v
+            if adj_ground_friction.shape[0] > 0:
+                add_param(adj_ground_friction, batch, index, adj_mu)
+            if adj_ground_normal.shape[0] > 0:  # through n = raw / |raw|
+                adj_raw = (adj_n - n_ground * wp.dot(n_ground, adj_n)) / wp.length(raw)
+                for d in range(3):
+                    add_param(adj_ground_normal, 3 * batch + d, index, adj_raw[d])
+        adj_m = float(0.0)
+        if wp.static(objects > 1):
+            if touching != 0:
+                # vel = v_cm + coulomb(rel, -n, mu_pair) with rel = v_field - v_cm
+                adj_rel, adj_minus_n, adj_pair = coulomb_adjoint(v_field - v_cm, -n, mu_pair, adj)
+                adj_cm = adj - adj_rel
+                adj = adj_rel
+                # mu_pair = (mu_k + (mu_total - mu_k m) / (m_total - m)) / 2
+                rest = m_total - m
+                others = (mu_total - mu_k * m) / rest
+                if adj_friction.shape[0] > 0:
+                    add_param(adj_friction, batch * objects + k, index, 0.5 * adj_pair * (1.0 - m / rest))
+                adj_m = 0.5 * adj_pair * (others - mu_k) / rest
+                # v_cm = p_total / m_total
+                adj_p_total = divide(adj_cm, m_total)
+                adj_m_total = -0.5 * adj_pair * others / rest - wp.dot(adj_cm, v_cm) / m_total
+                sums_adjoint(grid_m, grid_p, grid_a, uniform, friction, adj_grid_m, adj_grid_p, adj_grid_a,
+                             adj_uniform, adj_friction, batch, first, n_nodes, present, dt, adj_m_total, adj_p_total,
+                             0.5 * adj_pair / rest)
+                # n = sign g / |g|, g the lead field's mass gradient
+                g_len = wp.length(g_lead)
+                n_unit = divide(g_lead, g_len)
+                adj_unit = -adj_minus_n * sign
+                add_mass_gradient_adjoint(adj_grid_m, lead_offset, i, j, l, dims, 1.0 / dx,
+                                          divide(adj_unit - n_unit * wp.dot(n_unit, adj_unit), g_len))
+        add_field_velocity_adjoint(grid_m, grid_p, adj_grid_m, adj_grid_p, adj_grid_a, adj_uniform, batch, index, dt,
+                                   adj, adj_m)
+
+    return (wp.Kernel(grid_update, key=key, module=module, options={"enable_backward": False}),
+            wp.Kernel(grid_update_adjoint, key=f"{key}_adjoint", module=module, options={"enable_backward": False}))
 
 
 @wp.kernel(enable_backward=False)

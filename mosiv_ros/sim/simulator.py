@@ -698,6 +698,9 @@ SUBSTEP_HEADROOM = 1.15
 _G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_normal", "dst_x", "dst_v",
                  "dst_C")
 """The arguments of ``kernels.g2p`` whose adjoints ``kernels.g2p_adjoint`` takes after them, in order."""
+_GRID_UPDATE_ADJOINTS = ("grid_m", "grid_p", "grid_a", "uniform", "friction", "ground_normal", "ground_friction",
+                         "grid_v")
+"""The arguments of the grid update whose adjoints its written adjoint takes after them, in order."""
 _UNPACKED = object()
 """What ``Simulator._cpu_adjoint`` holds for an argument it has not packed yet."""
 
@@ -883,8 +886,11 @@ class Simulator:
         self.set_initial_velocity(given.v)
         self._setup_colliders()
         # the grid update for this many objects, without the colliders' code where there are none
-        self._grid_update = kernels.grid_update_for(kernels.MAX_COLLIDERS if self.config.colliders else 0,
-                                                    self.n_objects)
+        self._grid_update, grid_adjoint = kernels.grid_update_kernels(
+            kernels.MAX_COLLIDERS if self.config.colliders else 0, self.n_objects)
+        # every kernel's adjoint is Warp's but these, written out (kernels.g2p_adjoint says why)
+        self._written = {kernels.g2p: (kernels.g2p_adjoint, _G2P_ADJOINTS),
+                         self._grid_update: (grid_adjoint, _GRID_UPDATE_ADJOINTS)}
         load_modules(self.device, [self._grid_update.module.name])
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
@@ -1423,15 +1429,16 @@ class Simulator:
                     helper: ThreadPoolExecutor | None = None) -> None:
         """The adjoint of one ``launch`` recorded on ``tape`` (``_adjoint_launch``'s ``key``, ``helper``).
 
-        G2P's is ``kernels.g2p_adjoint``, every other kernel's Warp's.
+        G2P's and the grid update's are written out (``self._written``), every other kernel's Warp's.
         """
         kernel, dim, max_blocks, inputs, outputs = launch[:5]
         args = [*inputs, *outputs]
-        if kernel is kernels.g2p:
+        written = self._written.get(kernel)
+        if written is not None:
+            adjoint, names = written
             labels = self._labels_of(kernel)
-            adjoints = [tape.get_adjoint(args[labels[name]]) for name in _G2P_ADJOINTS]
-            self._adjoint_launch(key, kernels.g2p_adjoint, dim, max_blocks, [*args, *adjoints], tape,
-                                 written=True)
+            adjoints = [tape.get_adjoint(args[labels[name]]) for name in names]
+            self._adjoint_launch(key, adjoint, dim, max_blocks, [*args, *adjoints], tape, written=True)
         else:
             self._adjoint_launch(key, kernel, dim, max_blocks, args, tape, helper)
 
