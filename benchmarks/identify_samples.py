@@ -5,7 +5,9 @@
 
 Runs ``mosiv_ros.pipeline.run`` (the same as ``mosiv run``: reconstruction, lifting, fit on the
 first 70 % of the frames, uncertainty, twin, scores) on each bag and writes, per bag, the time of
-every stage, the fit's iterations (the search's wall time, the race of its closest ends through
+every stage, when each progress phase (reconstruction, search, Adam, uncertainty, ...) was
+reported first and last (``progress.PhaseSpans``, seconds from the bag's start), the fit's
+iterations (the search's wall time, the race of its closest ends through
 the first curriculum stage, the mean wall time of an iteration, split into simulation forward,
 loss and backward, and per stage the iterations' summed times and the range of their substeps
 a frame) and how many diverged, every estimated parameter against
@@ -43,13 +45,14 @@ from mosiv_ros.identify.run import build_kernels_aside
 from mosiv_ros.io.files import OutputDir, plain
 from mosiv_ros.pipeline import run_prepared
 from mosiv_ros.prepare import RunConfig, prepare
+from mosiv_ros.progress import PhaseSpans, Progress
 from mosiv_ros.synth.ground_truth import read_ground_truth
 
 
 def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: list[str],
-                  true_effects: bool = False):
+                  true_effects: bool = False, progress: Progress | None = None):
     """``prepare(bag)``, with the recorder's particles, declared densities and effects where asked."""
-    prepared = prepare(bag, config)
+    prepared = prepare(bag, config, progress)
     if not true_particles and not density and not true_effects:
         return prepared
     truth = read_ground_truth(bag)
@@ -65,10 +68,11 @@ def prepared_with(bag: Path, config: RunConfig, true_particles: str, density: li
 def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
         density: list[str] | None = None, true_effects: bool = False) -> dict:
     start = time.perf_counter()
+    phases = PhaseSpans()
     directory = OutputDir(out, f"benchmarks/identify_samples.py {bag}")
     build_kernels_aside(config.identify.device)  # as mosiv run does
-    prepared = prepared_with(bag, config, true_particles, density or [], true_effects)
-    result = run_prepared(prepared, directory, config)
+    prepared = prepared_with(bag, config, true_particles, density or [], true_effects, phases)
+    result = run_prepared(prepared, directory, config, phases)
     report = result.report
     fit = report["fit"]
     history = fit.get("history", [])
@@ -82,6 +86,7 @@ def one(bag: Path, config: RunConfig, out: Path, true_particles: str = "",
                        **{key: float(sum(h[key] for h in records)) for key in ("seconds", "forward_s", "backward_s")},
                        "substeps": [min(substeps), max(substeps)] if substeps else None})
     return {"bag": str(bag), "wall_s": time.perf_counter() - start, "timing": report["timing"],
+            "phases": phases.spans(),
             "fit_iterations": fit.get("iterations"), "fit_failures": fit.get("failures"),
             "search_s": fit.get("search_s"), "race": fit.get("race"), **mean, "stages": stages,
             "particles": report["particles"],

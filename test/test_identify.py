@@ -36,7 +36,7 @@ from mosiv_ros.identify.losses import (
 )
 from mosiv_ros.identify.observations import Observations, TrackAttachment, View, padded
 from mosiv_ros.identify.run import fit_problem, phase_progress
-from mosiv_ros.progress import TimeLeft, duration
+from mosiv_ros.progress import PhaseSpans, TimeLeft, duration
 from mosiv_ros.recon.views import OCCLUDED
 from mosiv_ros.sim import BodyForce, Gravity, Ground, ObjectModel, Particles
 from mosiv_ros.sim.boundaries import GROUND_PARAMS
@@ -1165,3 +1165,18 @@ def test_time_left_follows_the_rate_since_a_phases_first_report():
     now[0] = 5.0
     assert left("fit", 1, 10) is None  # the phase began again
     assert duration(None) == "unknown" and duration(75) == "1 min 15 s" and duration(3700) == "1 h 01 min"
+
+
+def test_phase_spans_hold_each_phases_first_and_last_report():
+    now = [10.0]
+    spans = PhaseSpans(clock=lambda: now[0])
+    now[0] = 12.0
+    spans("identify: search", 0, 64, "sample")
+    now[0] = 15.0
+    spans("identify: search", 64, 64, "sample")
+    spans("identify", 1, 20, "iteration")
+    now[0] = 21.5
+    spans("identify", 20, 20, "iteration")
+    assert spans.spans() == {
+        "identify: search": {"first_s": 2.0, "last_s": 5.0, "done": 64, "total": 64},
+        "identify": {"first_s": 5.0, "last_s": 11.5, "done": 20, "total": 20}}
