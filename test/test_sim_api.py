@@ -41,6 +41,27 @@ def test_out_of_range_parameter_is_refused_naming_object_parameter_and_range():
         sim.params.set("yield_stress", -5.0)
 
 
+def test_parameters_update_all_or_nothing_and_the_device_holds_what_the_host_reads():
+    """Values are read on the host (``Parameters.get``): the device's copy must hold the same."""
+    sim = falling_ball("plastic", {"E": 1e5})
+    with pytest.raises(ParameterError, match="yield_stress"):
+        sim.params.update({"E": 2e5, "yield_stress": -5.0})
+    assert sim.params.get("E")[0, 0] == 1e5  # the refused update changed nothing
+    sim.params.update({"E": 2e5, "nu": 0.25})
+    sim.params.set("yield_stress", {"ball": 300.0})
+    sim.params.replicate()
+    for name in sim.params.specs:
+        host = sim.params.get(name).astype(np.float32).ravel()
+        assert np.array_equal(sim.params.arrays[name].numpy(), host), name
+        assert np.array_equal(sim.params[name].numpy(), np.repeat(host, REPLICAS)), name
+    assert (sim.params.get("E")[0, 0], sim.params.get("yield_stress")[0, 0]) == (2e5, 300.0)
+    traj = sim.rollout(2, grad=True)
+    grads = sim.backward(np.ones_like(traj))
+    assert np.abs(grads.params["E"]).max() > 0
+    for name, grad in grads.params.items():  # one copy from the device, as each name's own
+        assert np.array_equal(grad, sim.params.grad(name)), name
+
+
 def test_parameter_a_family_does_not_use_is_not_range_checked():
     sim = falling_ball("fluid", {"E": -1.0})  # a fluid has no Young's modulus
     assert sim.params.get("E")[0, 0] == -1.0

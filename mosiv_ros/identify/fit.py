@@ -332,13 +332,14 @@ class Identifier:
 
     def apply(self, u: np.ndarray, velocity: np.ndarray) -> None:
         """Set ``sim`` to coordinates ``u`` and initial velocities (K, 6) about each centroid."""
+        values: dict[str, np.ndarray] = {}
         for entry, value in zip(self.entries, u, strict=True):
             if entry.name == OFFSET:
                 self.offsets[entry.index[1]] = entry.coordinate.to_theta(value)
                 continue
-            current = self.sim.params.get(entry.name)
+            current = values.setdefault(entry.name, self.sim.params.get(entry.name))
             current[entry.index] = entry.coordinate.to_theta(value)
-            self.sim.params.set(entry.name, current)
+        self.sim.params.update(values)
         boundary = self.problem.boundary
         if boundary is not None:
             self.sim.set_volume(boundary.volumes(self.offsets[self.index]))

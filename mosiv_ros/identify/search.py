@@ -224,12 +224,13 @@ class GlobalSearch:
         fit = self.identifier
         n = len(candidates)
         batch.set_initial_velocity(fit.sim.initial_velocity()[0])
+        rows = {}
         for name in dict.fromkeys(e.name for e in fit.entries if e.name != OFFSET):
-            values = np.repeat(fit.sim.params.get(name), n, axis=0)
+            values = rows[name] = np.repeat(fit.sim.params.get(name), n, axis=0)
             for i, entry in enumerate(fit.entries):
                 if entry.name == name:
                     values[(slice(None),) + entry.index[1:]] = entry.coordinate.to_theta(candidates[:, i])
-            batch.params.set(name, values)
+        batch.params.update(rows)
         offsets = fit.offsets_of(candidates)
         boundary = fit.problem.boundary
         if boundary is None:

@@ -13,6 +13,13 @@ becomes an atomic add into its gradient; a million particles adding into one add
 substep serialise on the GPU (measured: the backward pass ran 9x the forward at 1M particles),
 while 128 copies spread them out. The replicate kernel's own adjoint folds the copies back.
 
+Every parameter's values lie in one device array, one after another, and their replicas in
+another in the same order, so that one launch replicates them all and one copy brings every
+gradient to the host. The host keeps the values too, and reads them there: values change only
+through ``set`` and ``update``, and a read from the device waited for the device's queue (a
+sample bag's window with its gradient read parameters some 50 times a call, the device idle
+meanwhile).
+
 What it is for: storing, broadcasting, validating and reading back values and gradients.
 What it is not for: the physics that uses them (``materials``, ``effects``, ``kernels``).
 """
@@ -124,18 +131,21 @@ class Parameters:
         self.object_names = list(object_names)
         self.families = list(families)
         self.device = device
-        self.arrays: dict[str, wp.array] = {}
-        self.replicas: dict[str, wp.array] = {}
+        self._slices: dict[str, slice] = {}
+        start = 0
         for spec in self.specs.values():
-            values = np.broadcast_to(spec.default_vector(), self._shape(spec))
-            self.arrays[spec.name] = wp.array(
-                np.ascontiguousarray(values, dtype=np.float32).ravel(),
-                dtype=float,
-                device=device,
-                requires_grad=True,
-            )
-            self.replicas[spec.name] = wp.zeros(values.size * REPLICAS, dtype=float, device=device,
-                                                requires_grad=True)
+            size = int(np.prod(self._shape(spec)))
+            self._slices[spec.name] = slice(start, start + size)
+            start += size
+        self._host = np.zeros(start, dtype=np.float32)
+        """Every parameter's values, as the device holds them: what ``get`` reads."""
+        for spec in self.specs.values():
+            self._host[self._slices[spec.name]] = np.broadcast_to(spec.default_vector(), self._shape(spec)).ravel()
+        self._values = wp.array(self._host, dtype=float, device=device, requires_grad=True)
+        self._replicas = wp.zeros(start * REPLICAS, dtype=float, device=device, requires_grad=True)
+        self.arrays: dict[str, wp.array] = {name: self._values[part] for name, part in self._slices.items()}
+        self.replicas: dict[str, wp.array] = {
+            name: self._replicas[part.start * REPLICAS:part.stop * REPLICAS] for name, part in self._slices.items()}
         self.replicate()
 
     @property
@@ -167,10 +177,9 @@ class Parameters:
         return self.replicas[name]
 
     def replicate(self) -> None:
-        """Refresh every parameter's replicas from its values (on the tape when recording)."""
-        for name, values in self.arrays.items():
-            wp.launch(_replicate, dim=self.replicas[name].shape[0], inputs=[values],
-                      outputs=[self.replicas[name]], device=self.device)
+        """Refresh every parameter's replicas from its values, in one launch (on the tape when recording)."""
+        wp.launch(_replicate, dim=self._replicas.shape[0], inputs=[self._values], outputs=[self._replicas],
+                  device=self.device)
 
     def shape(self, name: str) -> tuple[int, ...]:
         """Shape of ``get(name)``: (B,), (B, K), (B, 3) or (B, K, 3)."""
@@ -182,19 +191,34 @@ class Parameters:
         A per-object parameter also accepts a mapping from object name to value. Values are
         range-checked for every object whose family uses the parameter.
         """
-        spec = self.spec(name)
-        shape = self._shape(spec)
+        self.update({name: value})
+
+    def update(self, values: dict[str, object]) -> None:
+        """``set`` each of ``values``, copied to the device at once; none of them if one is refused."""
+        host = self._host.copy()
+        for name, value in values.items():
+            spec = self.spec(name)
+            part = self._slices[spec.name]
+            host[part] = self._checked(spec, value, host[part].reshape(self._shape(spec))).ravel()
+        self._host = host
+        self._values.assign(host)
+
+    def _checked(self, spec: ParamSpec, value: object, current: np.ndarray) -> np.ndarray:
+        """``value`` of parameter ``spec`` (``set``'s rules) as float32 of its shape, range-checked.
+
+        ``current``: its values so far, which a mapping by object name keeps for the others.
+        """
+        name, shape = spec.name, self._shape(spec)
         if isinstance(value, dict):
             if not spec.per_object:
                 raise ParameterError(f"{name}: a mapping by object name needs a per-object parameter")
-            current = self.get(name)
+            array = current.astype(np.float64)
             for obj_name, obj_value in value.items():
                 if obj_name not in self.object_names:
                     raise ParameterError(
                         f"{name}: unknown object {obj_name!r}; objects: {', '.join(self.object_names)}"
                     )
-                current[:, self.object_names.index(obj_name)] = obj_value
-            array = current
+                array[:, self.object_names.index(obj_name)] = obj_value
         else:
             try:
                 array = np.broadcast_to(np.asarray(value, dtype=np.float64), shape)
@@ -205,32 +229,31 @@ class Parameters:
                     f"{', component' if spec.size > 1 else ''})"
                 ) from None
         self._check(spec, array)
-        self.arrays[name].assign(np.ascontiguousarray(array, dtype=np.float32).ravel())
-
-    def update(self, values: dict[str, object]) -> None:
-        for name, value in values.items():
-            self.set(name, value)
+        return np.asarray(array, dtype=np.float32)
 
     def get(self, name: str) -> np.ndarray:
-        """Current values as float64, shaped as ``shape(name)``."""
-        return self.arrays[name].numpy().astype(np.float64).reshape(self.shape(name))
+        """Current values as float64, shaped as ``shape(name)`` (read on the host)."""
+        return self._host[self._slices[self.spec(name).name]].astype(np.float64).reshape(self.shape(name))
 
     def grad(self, name: str) -> np.ndarray:
         """Accumulated gradient, shaped as ``shape(name)``."""
         return self.arrays[name].grad.numpy().astype(np.float64).reshape(self.shape(name))
 
+    def grads(self) -> dict[str, np.ndarray]:
+        """Every parameter's ``grad``, in one copy from the device."""
+        every = self._values.grad.numpy().astype(np.float64)
+        return {name: every[part].reshape(self.shape(name)) for name, part in self._slices.items()}
+
     def zero_grad(self) -> None:
-        for array in self.arrays.values():
-            array.grad.zero_()
+        self._values.grad.zero_()
         self.zero_replica_grad()
 
     def zero_replica_grad(self) -> None:
         """Zero the replicas' gradients: each frame's backward folds them into the values' once."""
-        for array in self.replicas.values():
-            array.grad.zero_()
+        self._replicas.grad.zero_()
 
     def validate(self) -> None:
-        """Range-check every parameter (after values were written to the arrays directly)."""
+        """Range-check every parameter's values."""
         for spec in self.specs.values():
             self._check(spec, self.get(spec.name))
 

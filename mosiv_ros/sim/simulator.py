@@ -1860,7 +1860,7 @@ class Simulator:
         B, N = self.n_batch, self.n_particles
         # x0 and v0 enter through _init_state; v0's adjoint is the frame-0 velocity adjoint.
         return Gradients(
-            params={name: self.params.grad(name) for name in self.params.specs},
+            params=self.params.grads(),
             v0=self._outward(self._staging.download(adjoint.v, np.float64).reshape(B, N, 3)),
             volume=self._outward(self._staging.download(self.volume.grad, np.float64).reshape(B, N)),
         )
