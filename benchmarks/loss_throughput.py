@@ -31,7 +31,9 @@ alternating, each round after two untimed calls. Each figure is the mean of ``--
 minimum too). ``--kernels`` (a CUDA device only) also replays one window and one search call
 under torch's profiler, whose CUPTI records every kernel, those of CUDA graphs included, and
 gives each kernel's device time per substep (the launches of G2P's forward count the
-substeps). The losses themselves are in the JSON, to compare paths and devices. Writes JSON.
+substeps), and where the device waits: its idle time between neighbouring kernels, copies and
+memsets, summed by the pair (``device_idle``). The losses themselves are in the JSON, to compare
+paths and devices. Writes JSON.
 """
 
 from __future__ import annotations
@@ -41,6 +43,7 @@ import json
 import platform
 import re
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -99,12 +102,49 @@ def torch_ops(call) -> int:
     return sum(1 for event in prof.events() if event.cpu_parent is None)
 
 
-def kernel_times(call) -> dict:
-    """Each kernel's device time over ``call()`` on a GPU, per substep, by torch's profiler.
+def kernel_name(name: str) -> str:
+    """A kernel's name without Warp's module hash (``_forward``/``_backward``: Warp's two versions of one kernel)."""
+    return re.sub(r"_[0-9a-f]{8}_cuda_kernel_", "_", name)[:80]
 
-    Kernels are named without Warp's module hash (``_forward``/``_backward``: Warp's two
-    versions of one kernel); ``substeps`` counts the launches of G2P's forward, one a substep
-    (twice where a backward recomputes its frames, which the tapes a rollout keeps spare).
+
+DEVICE_WORK = ("kernel", "gpu_memcpy", "gpu_memset")
+"""The categories of a torch profiler trace's events that the device runs."""
+
+
+def device_idle(events: list[dict], most: int = 8) -> dict:
+    """Where the device waits in a trace: its span, busy and idle time, and the idle time between neighbours.
+
+    ``events``: a torch profiler trace's ``traceEvents``; those the device runs (``DEVICE_WORK``)
+    count, each from ``ts`` for ``dur`` (us). A gap is the time from the latest end so far to
+    the next start; the gaps are summed by the pair of names around them (the event that ended
+    last, the one that starts), and the ``most`` pairs with the most idle time are given, most
+    first, with how often each pair met.
+    """
+    work = sorted((e for e in events if e.get("cat") in DEVICE_WORK and "dur" in e), key=lambda e: e["ts"])
+    pairs: dict[tuple[str, str], list] = {}
+    idle, latest = 0.0, None  # latest: (end, name) of the event that ends last so far
+    for event in work:
+        name, end = kernel_name(event["name"]), event["ts"] + event["dur"]
+        if latest is not None:
+            gap = max(event["ts"] - latest[0], 0.0)
+            idle += gap
+            pair = pairs.setdefault((latest[1], name), [0, 0.0])
+            pair[0] += 1
+            pair[1] += gap
+        if latest is None or end >= latest[0]:
+            latest = (end, name)
+    span = latest[0] - work[0]["ts"] if work else 0.0
+    gaps = sorted(pairs.items(), key=lambda item: -item[1][1])[:most]
+    return {"span_us": span, "busy_us": span - idle, "idle_us": idle,
+            "gaps": [{"after": a, "before": b, "count": n, "idle_us": us} for (a, b), (n, us) in gaps]}
+
+
+def kernel_times(call) -> dict:
+    """Each kernel's device time over ``call()`` on a GPU, per substep, and where the device waits, by torch's profiler.
+
+    Kernels are named without Warp's module hash (``kernel_name``); ``substeps`` counts the
+    launches of G2P's forward, one a substep (twice where a backward recomputes its frames,
+    which the tapes a rollout keeps spare); ``idle``: ``device_idle`` of the call's trace.
     """
     torch.cuda.synchronize()
     with profile(activities=[ProfilerActivity.CUDA]) as prof:
@@ -113,15 +153,18 @@ def kernel_times(call) -> dict:
     kernels: dict[str, list] = {}
     for event in prof.events():
         if event.device_type == torch.autograd.DeviceType.CUDA:
-            name = re.sub(r"_[0-9a-f]{8}_cuda_kernel_", "_", event.name)[:80]
-            launches = kernels.setdefault(name, [0, 0.0])
+            launches = kernels.setdefault(kernel_name(event.name), [0, 0.0])
             launches[0] += 1
             launches[1] += event.device_time
+    with tempfile.TemporaryDirectory() as folder:
+        trace = Path(folder) / "trace.json"
+        prof.export_chrome_trace(str(trace))
+        events = json.loads(trace.read_text())["traceEvents"]
     substeps = kernels.get("g2p_forward", [0])[0]
     return {"substeps": substeps, "device_us": sum(us for _, us in kernels.values()),
             "per_substep_us": {name: us / max(substeps, 1)
                                for name, (_, us) in sorted(kernels.items(), key=lambda k: -k[1][1])},
-            "launches": {name: n for name, (n, _) in kernels.items()}}
+            "launches": {name: n for name, (n, _) in kernels.items()}, "idle": device_idle(events)}
 
 
 def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, tapes: bool,
@@ -177,6 +220,10 @@ def one(bag: Path, config: RunConfig, rows: int, repeats: int, compare: bool, ta
         for part, times in result["kernels"].items():
             print("kernels", part, times["substeps"], "substeps",
                   {name: round(us, 2) for name, us in list(times["per_substep_us"].items())[:8]}, flush=True)
+            idle = times["idle"]
+            print("idle", part, f"span {idle['span_us'] / 1e3:.1f} ms, busy {idle['busy_us'] / 1e3:.1f} ms;",
+                  "; ".join(f"{g['after']} -> {g['before']}: {g['idle_us'] / 1e3:.2f} ms over {g['count']}"
+                            for g in idle["gaps"][:4]), flush=True)
     parts = ("window", "search") + (("tapes",) if tapes else ())
     for part in parts:
         rounds = result[part] if part == "tapes" else [result[part]]

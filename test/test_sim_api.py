@@ -917,6 +917,25 @@ def test_the_kernel_profile_benchmark_times_every_kernel_of_a_frame(capsys, monk
     assert result["frame_s"]["forward"] > 0 and result["frame_s"]["backward"] > 0
 
 
+def test_the_loss_benchmark_sums_the_devices_idle_time_by_the_work_around_it():
+    """``loss_throughput.device_idle`` on a trace: host events and work inside other work leave no gap."""
+    benchmark = _benchmark("loss_throughput")
+    events = [{"cat": "kernel", "name": "p2g_0123abcd_cuda_kernel_forward", "ts": 100.0, "dur": 10.0},
+              {"cat": "gpu_memset", "name": "Memset (Device)", "ts": 101.0, "dur": 2.0},  # inside P2G
+              {"cat": "cpu_op", "name": "aten::copy_", "ts": 111.0, "dur": 30.0},  # the host's
+              {"cat": "kernel", "name": "g2p_89abcdef_cuda_kernel_forward", "ts": 112.0, "dur": 5.0},
+              {"cat": "gpu_memcpy", "name": "Memcpy DtoH", "ts": 120.0, "dur": 3.0},
+              {"cat": "kernel", "name": "p2g_0123abcd_cuda_kernel_forward", "ts": 123.5, "dur": 1.0},
+              {"cat": "kernel", "name": "g2p_89abcdef_cuda_kernel_forward", "ts": 126.5, "dur": 1.0}]
+    idle = benchmark.device_idle(events)
+    assert idle["span_us"] == 27.5 and idle["idle_us"] == 7.5 and idle["busy_us"] == 20.0
+    gaps = {(g["after"], g["before"]): (g["count"], g["idle_us"]) for g in idle["gaps"]}
+    assert gaps == {("p2g_forward", "Memset (Device)"): (1, 0.0), ("p2g_forward", "g2p_forward"): (2, 4.0),
+                    ("g2p_forward", "Memcpy DtoH"): (1, 3.0), ("Memcpy DtoH", "p2g_forward"): (1, 0.5)}
+    assert [g["idle_us"] for g in idle["gaps"]] == [4.0, 3.0, 0.5, 0.0]
+    assert benchmark.device_idle([]) == {"span_us": 0.0, "busy_us": 0.0, "idle_us": 0.0, "gaps": []}
+
+
 @pytest.mark.skipif(DEVICE == "cpu", reason="torch's profiler sees Warp's kernels on a CUDA device: "
                                             "run with MOSIV_TEST_DEVICE=cuda:0")
 def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(monkeypatch, tmp_path):
@@ -939,3 +958,4 @@ def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(monkeypatch
     assert not any(name.endswith("_backward") for name in search["per_substep_us"])  # the search has no gradient
     # a substep's adjoint once (a backward that recomputes its frames launches G2P again)
     assert 0 < window["launches"]["g2p_adjoint_forward"] <= window["substeps"]
+    assert 0 < window["idle"]["busy_us"] <= window["idle"]["span_us"] and window["idle"]["gaps"]
