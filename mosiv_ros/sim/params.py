@@ -143,6 +143,7 @@ class Parameters:
             self._host[self._slices[spec.name]] = np.broadcast_to(spec.default_vector(), self._shape(spec)).ravel()
         self._values = wp.array(self._host, dtype=float, device=device, requires_grad=True)
         self._replicas = wp.zeros(start * REPLICAS, dtype=float, device=device, requires_grad=True)
+        # each parameter's views of the two: written through ``set`` and ``update`` only
         self.arrays: dict[str, wp.array] = {name: self._values[part] for name, part in self._slices.items()}
         self.replicas: dict[str, wp.array] = {
             name: self._replicas[part.start * REPLICAS:part.stop * REPLICAS] for name, part in self._slices.items()}

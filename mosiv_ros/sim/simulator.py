@@ -1446,8 +1446,8 @@ class Simulator:
                         tape: wp.Tape, helper: ThreadPoolExecutor | None = None, written: bool = False) -> None:
         """Warp's adjoint of a launch of ``kernel`` with ``args``, or ``kernel`` itself if ``written``.
 
-        A written adjoint (``kernels.g2p_adjoint``) is a kernel of its own that takes the
-        adjoints among its arguments. On the CPU a kernel with ``part`` and ``parts`` arguments
+        A written adjoint (``kernels.g2p_adjoint``, the grid update's) is a kernel of its own that
+        takes the adjoints among its arguments. On the CPU a kernel with ``part`` and ``parts`` arguments
         (P2G) runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
         (``params.lane_particle`` says why they may), each under a ``key`` of its own.
         """
