@@ -382,18 +382,23 @@ def field_velocity(
 
 
 @wp.func
+def difference_nodes(i: int, j: int, l: int, dims: wp.vec3i):
+    """The nodes below and above (i, j, l) along each axis that ``mass_gradient`` differences (clamped to the grid)."""
+    return (wp.vec3i(wp.max(i - 1, 0), wp.max(j - 1, 0), wp.max(l - 1, 0)),
+            wp.vec3i(wp.min(i + 1, dims[0] - 1), wp.min(j + 1, dims[1] - 1), wp.min(l + 1, dims[2] - 1)))
+
+
+@wp.func
 def mass_gradient(grid_m: wp.array(dtype=float), offset: int, i: int, j: int, l: int,
                   dims: wp.vec3i, inv_dx: float):
     """Central-difference gradient of one field's grid mass (one-sided at the domain faces)."""
-    i0 = wp.max(i - 1, 0)
-    i1 = wp.min(i + 1, dims[0] - 1)
-    j0 = wp.max(j - 1, 0)
-    j1 = wp.min(j + 1, dims[1] - 1)
-    l0 = wp.max(l - 1, 0)
-    l1 = wp.min(l + 1, dims[2] - 1)
-    gx = (grid_m[offset + node_index(i1, j, l, dims)] - grid_m[offset + node_index(i0, j, l, dims)]) / float(i1 - i0)
-    gy = (grid_m[offset + node_index(i, j1, l, dims)] - grid_m[offset + node_index(i, j0, l, dims)]) / float(j1 - j0)
-    gz = (grid_m[offset + node_index(i, j, l1, dims)] - grid_m[offset + node_index(i, j, l0, dims)]) / float(l1 - l0)
+    below, above = difference_nodes(i, j, l, dims)
+    gx = (grid_m[offset + node_index(above[0], j, l, dims)]
+          - grid_m[offset + node_index(below[0], j, l, dims)]) / float(above[0] - below[0])
+    gy = (grid_m[offset + node_index(i, above[1], l, dims)]
+          - grid_m[offset + node_index(i, below[1], l, dims)]) / float(above[1] - below[1])
+    gz = (grid_m[offset + node_index(i, j, above[2], dims)]
+          - grid_m[offset + node_index(i, j, below[2], dims)]) / float(above[2] - below[2])
     return wp.vec3(gx, gy, gz) * inv_dx
 
 
@@ -551,22 +556,17 @@ def add_field_velocity_adjoint(grid_m: wp.array(dtype=float), grid_p: wp.array(d
 def add_mass_gradient_adjoint(adj_grid_m: wp.array(dtype=float), offset: int, i: int, j: int, l: int,
                               dims: wp.vec3i, inv_dx: float, adj_g: wp.vec3):
     """Add the adjoints of the masses ``mass_gradient`` read, given the adjoint ``adj_g`` of its result."""
-    i0 = wp.max(i - 1, 0)
-    i1 = wp.min(i + 1, dims[0] - 1)
-    j0 = wp.max(j - 1, 0)
-    j1 = wp.min(j + 1, dims[1] - 1)
-    l0 = wp.max(l - 1, 0)
-    l1 = wp.min(l + 1, dims[2] - 1)
+    below, above = difference_nodes(i, j, l, dims)
     a = adj_g * inv_dx
-    ax = a[0] / float(i1 - i0)
-    ay = a[1] / float(j1 - j0)
-    az = a[2] / float(l1 - l0)
-    wp.atomic_add(adj_grid_m, offset + node_index(i1, j, l, dims), ax)
-    wp.atomic_add(adj_grid_m, offset + node_index(i0, j, l, dims), -ax)
-    wp.atomic_add(adj_grid_m, offset + node_index(i, j1, l, dims), ay)
-    wp.atomic_add(adj_grid_m, offset + node_index(i, j0, l, dims), -ay)
-    wp.atomic_add(adj_grid_m, offset + node_index(i, j, l1, dims), az)
-    wp.atomic_add(adj_grid_m, offset + node_index(i, j, l0, dims), -az)
+    ax = a[0] / float(above[0] - below[0])
+    ay = a[1] / float(above[1] - below[1])
+    az = a[2] / float(above[2] - below[2])
+    wp.atomic_add(adj_grid_m, offset + node_index(above[0], j, l, dims), ax)
+    wp.atomic_add(adj_grid_m, offset + node_index(below[0], j, l, dims), -ax)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, above[1], l, dims), ay)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, below[1], l, dims), -ay)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j, above[2], dims), az)
+    wp.atomic_add(adj_grid_m, offset + node_index(i, j, below[2], dims), -az)
 
 
 @wp.func
