@@ -236,12 +236,8 @@ class Parameters:
         """Current values as float64, shaped as ``shape(name)`` (read on the host)."""
         return self._host[self._slices[self.spec(name).name]].astype(np.float64).reshape(self.shape(name))
 
-    def grad(self, name: str) -> np.ndarray:
-        """Accumulated gradient, shaped as ``shape(name)``."""
-        return self.arrays[name].grad.numpy().astype(np.float64).reshape(self.shape(name))
-
     def grads(self) -> dict[str, np.ndarray]:
-        """Every parameter's ``grad``, in one copy from the device."""
+        """Every parameter's accumulated gradient, shaped as ``shape(name)``, in one copy from the device."""
         every = self._values.grad.numpy().astype(np.float64)
         return {name: every[part].reshape(self.shape(name)) for name, part in self._slices.items()}
 
