@@ -721,10 +721,28 @@ def grid_update_kernels(colliders: int, objects: int) -> tuple[wp.Kernel, wp.Ker
                     out = v_cm + coulomb(rel, -n, mu_pair)
         return out, touching, sign, lead_offset, g_lead, first, present, n, m_total, mu_total, mu_k, mu_pair, v_cm
 
+    def collider_projections(vel: wp.vec3, count: int, substep: int, collider_count: int, x_node: wp.vec3,
+                             collider_shape: wp.array(dtype=int), collider_size: wp.array(dtype=wp.vec3),
+                             collider_friction: wp.array(dtype=float), collider_pos: wp.array(dtype=wp.vec3),
+                             collider_rot: wp.array(dtype=wp.quat), collider_vel: wp.array(dtype=wp.vec3),
+                             collider_omega: wp.array(dtype=wp.vec3)):
+        """``vel`` after the projections onto the first ``count`` colliders, in order."""
+        out = vel
+        for c in range(colliders):  # unrolled: a constant
+            if c < count:
+                inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape,
+                                                         collider_size, collider_pos, collider_rot, collider_vel,
+                                                         collider_omega)
+                if inside != 0:
+                    out = v_col + coulomb(out - v_col, normal, collider_friction[c])
+        return out
+
     sums = wp.Function(contact_sums, key=f"contact_sums_{objects}", namespace="", module=module)
     sums_adjoint = wp.Function(add_contact_sums_adjoint, key=f"add_contact_sums_adjoint_{objects}",
                                namespace="", module=module)
     contact = wp.Function(object_contact, key=f"object_contact_{objects}", namespace="", module=module)
+    projected = wp.Function(collider_projections, key=f"collider_projections_{colliders}", namespace="",
+                            module=module)
 
     def grid_update(
         grid_m: wp.array(dtype=float),
@@ -784,11 +802,8 @@ def grid_update_kernels(colliders: int, objects: int) -> tuple[wp.Kernel, wp.Ker
             n_ground, raw, on = ground_plane(ground_height, ground_normal, batch, index, x_node, dx)
             if on != 0:
                 vel = coulomb(vel, n_ground, param(ground_friction, batch, index))
-        for c in range(colliders):
-            inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
-                                                     collider_pos, collider_rot, collider_vel, collider_omega)
-            if inside != 0:
-                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+        vel = projected(vel, colliders, substep, collider_count, x_node, collider_shape, collider_size,
+                        collider_friction, collider_pos, collider_rot, collider_vel, collider_omega)
         # slip walls: no velocity into a domain face within WALL nodes of it
         grid_v[index] = wp.cw_mul(vel, wall_mask(vel, i, j, l, dims))
 
@@ -864,23 +879,14 @@ def grid_update_kernels(colliders: int, objects: int) -> tuple[wp.Kernel, wp.Ker
                 mu_ground = param(ground_friction, batch, index)
                 vel = coulomb(vel, n_ground, mu_ground)
         v_ground = vel
-        for c in range(colliders):
-            inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
-                                                     collider_pos, collider_rot, collider_vel, collider_omega)
-            if inside != 0:
-                vel = v_col + coulomb(vel - v_col, normal, collider_friction[c])
+        vel = projected(v_ground, colliders, substep, collider_count, x_node, collider_shape, collider_size,
+                        collider_friction, collider_pos, collider_rot, collider_vel, collider_omega)
 
         adj = wp.cw_mul(adj_grid_v[index], wall_mask(vel, i, j, l, dims))
         for last in range(colliders):  # the colliders last first, each one's input found again
             c = colliders - 1 - last
-            v_in = v_ground
-            for d in range(colliders):
-                if d < c:
-                    inside, normal, v_col = collider_surface(d, substep, collider_count, x_node, collider_shape,
-                                                             collider_size, collider_pos, collider_rot, collider_vel,
-                                                             collider_omega)
-                    if inside != 0:
-                        v_in = v_col + coulomb(v_in - v_col, normal, collider_friction[d])
+            v_in = projected(v_ground, c, substep, collider_count, x_node, collider_shape, collider_size,
+                             collider_friction, collider_pos, collider_rot, collider_vel, collider_omega)
             inside, normal, v_col = collider_surface(c, substep, collider_count, x_node, collider_shape, collider_size,
                                                      collider_pos, collider_rot, collider_vel, collider_omega)
             if inside != 0:
