@@ -21,6 +21,10 @@ batched rollout, Young's modulus spread log-uniformly over a decade up to the si
 gradients); throughput counts every row's particles.
 
     python benchmarks/sim_throughput.py --device cuda:0 --particles 3000 --objects 1 2 --batch 32
+
+``--kernels`` (a CUDA device only) replays the timed forward frames once more under torch's
+profiler and adds each kernel's device time per substep and where the device waits
+(``loss_throughput.kernel_times``).
 """
 
 from __future__ import annotations
@@ -63,7 +67,7 @@ def build(n_particles: int, n_objects: int, device: str, tape_memory: float, bat
 
 
 def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_memory: float,
-            batch: int = 1) -> dict:
+            batch: int = 1, kernels: bool = False) -> dict:
     import numpy as np
     import warp as wp
 
@@ -98,6 +102,10 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
         "device": sim.device, "tapes_kept": bool(sim.kept_tape_frames),
         "forward_s": forward, "forward_particle_substeps_per_s": work / forward,
     }
+    if kernels and cuda:
+        from loss_throughput import kernel_times  # torch's profiler, only where asked
+
+        result["kernels"] = kernel_times(lambda: sim.rollout(frames))
     if not forward_only:
         dL = rng.normal(size=traj.shape).astype(np.float32) * 1e-3  # drawn untimed (0.3 s at 1M particles)
         start = time.perf_counter()
@@ -123,16 +131,18 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=None, help="write the JSON here too")
     parser.add_argument("--batch", type=int, default=1,
                         help="parameter sets in one batched rollout, forward only (the search's case)")
+    parser.add_argument("--kernels", action="store_true",
+                        help="each kernel's device time per substep of the forward frames (a CUDA device only)")
     parser.add_argument("--one", nargs=3, type=int, metavar=("N", "K", "FRAMES"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(*args.one, args.device, args.tape_memory, args.batch)))
+        print(json.dumps(run_one(*args.one, args.device, args.tape_memory, args.batch, args.kernels)))
         return 0
     results = []
     for n in args.particles:
         for k in args.objects:
-            results.append(_child(n, k, args.frames, args.device, args.tape_memory, args.batch))
+            results.append(_child(n, k, args.frames, args.device, args.tape_memory, args.batch, args.kernels))
             print(json.dumps(results[-1]), flush=True)
     middle = args.particles[len(args.particles) // 2]
     scaling = [] if args.batch > 1 else [_child(middle, 1, f, args.device, args.tape_memory)
@@ -149,9 +159,11 @@ def main() -> int:
     return 0
 
 
-def _child(n: int, k: int, frames: int, device: str, tape_memory: float, batch: int = 1) -> dict:
+def _child(n: int, k: int, frames: int, device: str, tape_memory: float, batch: int = 1,
+           kernels: bool = False) -> dict:
     out = subprocess.run([sys.executable, __file__, "--device", device, "--tape-memory", str(tape_memory),
-                          "--batch", str(batch), "--one", str(n), str(k), str(frames)],
+                          "--batch", str(batch), *(["--kernels"] if kernels else []),
+                          "--one", str(n), str(k), str(frames)],
                          capture_output=True, text=True, check=False)
     if out.returncode != 0:
         # a negative code is the signal that ended it (-9: killed, typically out of memory)

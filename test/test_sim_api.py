@@ -959,3 +959,18 @@ def test_the_loss_benchmark_gives_each_kernels_device_time_a_substep(monkeypatch
     # a substep's adjoint once (a backward that recomputes its frames launches G2P again)
     assert 0 < window["launches"]["g2p_adjoint_forward"] <= window["substeps"]
     assert 0 < window["idle"]["busy_us"] <= window["idle"]["span_us"] and window["idle"]["gaps"]
+
+
+@pytest.mark.skipif(DEVICE == "cpu", reason="torch's profiler sees Warp's kernels on a CUDA device: "
+                                            "run with MOSIV_TEST_DEVICE=cuda:0")
+def test_the_throughput_benchmark_gives_each_kernels_device_time_a_substep_of_the_search(monkeypatch):
+    """``benchmarks/sim_throughput.py --batch B --kernels``: the search's case, kernel by kernel."""
+    monkeypatch.syspath_prepend(str(_ROOT / "benchmarks"))  # it imports loss_throughput's profiler
+    benchmark = _benchmark("sim_throughput")
+    result = benchmark.run_one(500, 2, 2, DEVICE, 0.0, batch=4, kernels=True)
+    kernels = result["kernels"]
+    assert kernels["substeps"] == 2 * result["substeps_per_frame"]  # the two forward frames, once
+    names = set(kernels["per_substep_us"])
+    assert "g2p_forward" in names and any("p2g" in name for name in names), names
+    assert not any(name.endswith("_backward") for name in names)  # forward only, as the search runs
+    assert 0 < kernels["idle"]["busy_us"] <= kernels["idle"]["span_us"]
