@@ -337,8 +337,9 @@ class Identifier:
             if entry.name == OFFSET:
                 self.offsets[entry.index[1]] = entry.coordinate.to_theta(value)
                 continue
-            current = values.setdefault(entry.name, self.sim.params.get(entry.name))
-            current[entry.index] = entry.coordinate.to_theta(value)
+            if entry.name not in values:  # each parameter read once, however many entries it has
+                values[entry.name] = self.sim.params.get(entry.name)
+            values[entry.name][entry.index] = entry.coordinate.to_theta(value)
         self.sim.params.update(values)
         boundary = self.problem.boundary
         if boundary is not None:
