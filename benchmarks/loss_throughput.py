@@ -139,6 +139,13 @@ def device_idle(events: list[dict], most: int = 8) -> dict:
             "gaps": [{"after": a, "before": b, "count": n, "idle_us": us} for (a, b), (n, us) in gaps]}
 
 
+def refuse_without_cuda(parser: argparse.ArgumentParser, device: str) -> None:
+    """End with ``parser``'s error unless ``device`` is a CUDA device: ``kernel_times`` needs one."""
+    if not resolve_device(device).startswith("cuda"):
+        parser.error(f"--kernels needs a CUDA device, not {device!r}: on the CPU torch's profiler does not "
+                     "see Warp's kernels (benchmarks/sim_kernel_profile.py times them one launch at a time)")
+
+
 def kernel_times(call) -> dict:
     """Each kernel's device time over ``call()`` on a GPU, per substep, and where the device waits, by torch's profiler.
 
@@ -253,10 +260,8 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=Path("out/loss_throughput.json"))
     args = parser.parse_args()
     config = run_config(args.params_file, args.device)
-    if args.kernels and not resolve_device(config.identify.device).startswith("cuda"):
-        parser.error(f"--kernels needs a CUDA device, not {args.device!r}: on the CPU "
-                     "torch's profiler does not see Warp's kernels (benchmarks/sim_kernel_profile.py "
-                     "times them one launch at a time)")
+    if args.kernels:
+        refuse_without_cuda(parser, config.identify.device)
     results = [one(bag, config, args.rows, args.repeats, args.compare, args.tapes, args.kernels)
                for bag in args.bags]
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -102,7 +102,7 @@ def run_one(n_particles: int, n_objects: int, frames: int, device: str, tape_mem
         "device": sim.device, "tapes_kept": bool(sim.kept_tape_frames),
         "forward_s": forward, "forward_particle_substeps_per_s": work / forward,
     }
-    if kernels and cuda:
+    if kernels:  # a CUDA device (``main`` refuses others)
         from loss_throughput import kernel_times  # torch's profiler, only where asked
 
         result["kernels"] = kernel_times(lambda: sim.rollout(frames))
@@ -136,6 +136,10 @@ def main() -> int:
     parser.add_argument("--one", nargs=3, type=int, metavar=("N", "K", "FRAMES"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.kernels:
+        from loss_throughput import refuse_without_cuda
+
+        refuse_without_cuda(parser, args.device)
     if args.one:
         print(json.dumps(run_one(*args.one, args.device, args.tape_memory, args.batch, args.kernels)))
         return 0
