@@ -13,6 +13,7 @@ import warp as wp
 from sim_scenes import DEVICE
 
 from mosiv_ros.sim.runtime import load_modules
+from mosiv_ros.sim.simulator import _momentum_and_mass
 from mosiv_ros.sim.warp_reduce import add, run_start, scatter
 
 
@@ -47,14 +48,24 @@ def _keys(n: int, rng: np.random.Generator) -> np.ndarray:
     return keys.astype(np.int32)
 
 
+@pytest.mark.parametrize("interleaved", [False, True], ids=["apart", "interleaved"])
 @pytest.mark.parametrize("n, skip", [(1000, 0), (77, 0), (1000, 3)])
-def test_scatter_sums_what_every_lane_adds(n, skip):
+def test_scatter_sums_what_every_lane_adds(n, skip, interleaved):
+    """Into masses and momenta apart, and into the simulator's grids' one slot a node.
+
+    Interleaved, a device of compute capability 9.0 or later adds each run's four sums with
+    one vector reduction; the slot holds the momentum, then the mass.
+    """
     load_modules(DEVICE, [__name__])
     rng = np.random.default_rng(n + skip)
     keys = _keys(n, rng)
     values = rng.normal(size=n).astype(np.float32)
-    grid_m = wp.zeros(80, dtype=float, device=DEVICE)
-    grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE)
+    if interleaved:
+        nodes = wp.zeros(80, dtype=wp.vec4, device=DEVICE)
+        grid_p, grid_m = _momentum_and_mass(nodes, True)
+    else:
+        grid_m = wp.zeros(80, dtype=float, device=DEVICE)
+        grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE)
     wp.launch(_scatter_kernel, dim=n, inputs=[wp.array(keys, dtype=int, device=DEVICE),
                                               wp.array(values, dtype=float, device=DEVICE), skip],
               outputs=[grid_m, grid_p], device=DEVICE)
@@ -67,6 +78,8 @@ def test_scatter_sums_what_every_lane_adds(n, skip):
         np.add.at(want_p, node, np.stack([values, -2 * values, lanes], axis=1)[kept])
     assert np.allclose(grid_m.numpy(), want_m, rtol=1e-5, atol=1e-5)
     assert np.allclose(grid_p.numpy(), want_p, rtol=1e-5, atol=1e-3)
+    if interleaved:
+        assert np.array_equal(nodes.numpy(), np.concatenate([grid_p.numpy(), grid_m.numpy()[:, None]], axis=1))
 
 
 @pytest.mark.parametrize("n, skip", [(1000, 0), (45, 0), (1000, 4)])

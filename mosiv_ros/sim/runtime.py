@@ -5,7 +5,8 @@ Three things every simulation needs before its first launch, each done once per 
 - ``start()`` initialises Warp. On a machine without a usable CUDA driver, Warp's native library
   prints "Warp CUDA error" lines and a Python warning about the driver version while it looks
   for one; with the CPU as the answer that is not an error. Their text is kept at DEBUG level,
-  and one INFO line says what was found.
+  and one INFO line says what was found. Warp builds PTX for the device's own architecture
+  (up to compute capability 9.0) rather than for 7.5.
 - ``resolve_device(device)`` turns the one ``device`` setting ('auto', 'cpu', 'cuda:N') into
   a Warp device, with a clear error when CUDA is asked for and absent.
 - ``load_modules(device, modules)`` compiles (on a cold kernel cache) and loads Warp modules
@@ -83,6 +84,10 @@ def start() -> None:
         if _started:
             return
         wp.config.quiet = True  # no greeting, no per-module load lines: this module logs instead
+        # where Warp builds PTX, for the device's own architecture up to compute capability 9.0
+        # (Warp's default: 7.5 for every device), so that P2G has sm_90's vector reductions
+        # (``warp_reduce.scatter``); the driver compiles it for the device as before
+        wp.config.ptx_target_arch = max(wp.config.ptx_target_arch, 90)
         with _captured_output() as output:
             wp.init()
         _started = True
