@@ -55,6 +55,9 @@ class GridView:
     Every node with mass is in the box of ``box_dims`` nodes from ``box_lo`` (the whole grid on
     CUDA, the nodes the particles reach on the CPU): a launch of ``n_box`` threads covers it in
     every field, thread t at node ``kernels.field_node(t, box_lo, box_dims, dims)``.
+    On a CUDA device of compute capability 9.0 or later ``m`` and ``p`` are strided views of one
+    array (``simulator._momentum_and_mass``): a kernel indexes them as any array, but they are
+    not contiguous memory.
     """
 
     m: wp.array  # float, mass
