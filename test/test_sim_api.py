@@ -41,6 +41,26 @@ def test_out_of_range_parameter_is_refused_naming_object_parameter_and_range():
         sim.params.set("yield_stress", -5.0)
 
 
+def test_a_rows_check_names_the_first_value_out_of_range_and_skips_objects_whose_family_has_no_use_for_it():
+    """``Parameters.validate`` checks every row as arrays: the first bad value in (row, object) order is named."""
+    from mosiv_ros.sim.materials import MATERIAL_PARAMS
+    from mosiv_ros.sim.params import Parameters
+
+    params = Parameters(MATERIAL_PARAMS, 3, ["cube", "clay"], ["elastic", "plastic"], "cpu")
+    params.validate()
+    rows = params.get("yield_stress")
+    rows[:, 0] = -1.0  # the elastic cube has no yield stress: any value of it passes
+    params.set("yield_stress", rows)
+    params.validate()
+    values = params.get("E")
+    values[2, 0], values[1, 1] = 1e12, np.nan  # row 1's clay comes first in index order
+    params._host[params._slices["E"]] = values.ravel()  # as a caller writing the arrays would, unchecked
+    with pytest.raises(ParameterError, match=r"E of object 'clay' \(plastic\), parameter set 1 = nan Pa"):
+        params.validate()
+    with pytest.raises(ParameterError, match=r"E of object 'cube' \(elastic\), parameter set 2 = 1e\+12 Pa"):
+        params.set("E", np.where(np.isnan(values), 1e5, values))  # the same check on setting
+
+
 def test_parameters_update_all_or_nothing_and_the_device_holds_what_the_host_reads():
     """Values are read on the host (``Parameters.get``): the device's copy must hold the same."""
     sim = falling_ball("plastic", {"E": 1e5})

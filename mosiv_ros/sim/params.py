@@ -95,7 +95,11 @@ class ParamSpec:
 
     def in_range(self, value: float) -> bool:
         """Whether ``value`` is finite and within the bounds as float32 stores them (as values are)."""
-        return bool(np.isfinite(value) and np.float32(self.lower) <= value <= np.float32(self.upper))
+        return bool(self.within(value))
+
+    def within(self, values: np.ndarray) -> np.ndarray:
+        """``in_range`` of each of ``values``."""
+        return np.isfinite(values) & (np.float32(self.lower) <= values) & (values <= np.float32(self.upper))
 
     def out_of_range(self, value: float, where: str = "") -> ParameterError:
         """The error for a ``value`` not ``in_range``; ``where`` names its object and batch."""
@@ -255,12 +259,20 @@ class Parameters:
             self._check(spec, self.get(spec.name))
 
     def _check(self, spec: ParamSpec, values: np.ndarray) -> None:
-        for index in np.ndindex(values.shape):
-            value = float(values[index])
-            obj = index[1] if spec.per_object else None
-            if obj is not None and spec.families and self.families[obj] not in spec.families:
-                continue
-            if not spec.in_range(value):
-                where = f"object {self.object_names[obj]!r} ({self.families[obj]})" if obj is not None else ""
-                batch = f"parameter set {index[0]}" if self.n_batch > 1 else ""
-                raise spec.out_of_range(value, ", ".join(s for s in (where, batch) if s))
+        """Raise ``spec.out_of_range`` for the first value (in index order) not ``in_range``.
+
+        Checked as arrays: a rollout checks every parameter of every row (an element at a time
+        that took 0.47 ms of host time a rollout for 32 rows).
+        """
+        ok = spec.within(values)
+        if spec.per_object and spec.families:  # objects of other families do not use it
+            unused = np.array([family not in spec.families for family in self.families])
+            ok |= unused.reshape((1, -1) + (1,) * (values.ndim - 2))
+        if ok.all():
+            return
+        index = tuple(int(i) for i in np.argwhere(~ok)[0])
+        value = float(values[index])
+        obj = index[1] if spec.per_object else None
+        where = f"object {self.object_names[obj]!r} ({self.families[obj]})" if obj is not None else ""
+        batch = f"parameter set {index[0]}" if self.n_batch > 1 else ""
+        raise spec.out_of_range(value, ", ".join(s for s in (where, batch) if s))
