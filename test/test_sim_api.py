@@ -531,6 +531,40 @@ def test_a_queued_rollout_and_a_gradient_on_the_device_give_what_the_host_gets(o
         sim.backward(wp.zeros(5, dtype=wp.vec3, device=sim.device))
 
 
+def test_the_check_of_several_frames_names_the_first_frame_row_and_object_at_fault():
+    """``Simulator._diverged`` over a queued rollout's frames at once (what ``wait`` reads on a GPU).
+
+    Statistics per frame, row and object: fastest speed, non-finite count, count outside the
+    domain, smallest det b. The first failure in (frame, row, object) order is named, each
+    row's speed against one cell per its own substep.
+    """
+    dx = 0.02
+    sim = scene([box((0.1, 0.1, 0.1), (0.02,) * 3, dx / 2), box((0.2, 0.1, 0.1), (0.02,) * 3, dx / 2)],
+                [ObjectModel("a", "elastic", {}), ObjectModel("b", "plastic", {})],
+                dx=dx, lo=(0, 0, 0), hi=(0.3, 0.2, 0.2), n_batch=2)
+    stats = np.tile(np.float32([0.1, 0.0, 0.0, 1.0]), (3, 2, 2, 1))  # frames, rows, objects, statistics
+    stats[1, 1, 0, 3] = 1e-7  # row 1, object a: inverted
+    stats[1, 0, 1, 2] = 3  # row 0, object b: outside, earlier in that order
+    stats[2, 0, 0, 1] = 2  # a frame later: non-finite
+    with pytest.raises(SimulationDiverged) as raised:
+        sim._diverged(stats.reshape(3, -1), 5, 1e-3)
+    assert (raised.value.frame, raised.value.batch, raised.value.object_name) == (6, 0, "b")
+    assert "3 particle(s) left the simulation domain" in raised.value.reason
+    stats[1, 0, 1, 2] = 0
+    with pytest.raises(SimulationDiverged, match=r"frame 6: object 'a' \(parameter set 1\): the deformation inverted"):
+        sim._diverged(stats.reshape(3, -1), 5, 1e-3)
+    stats[1, 1, 0, 3] = 1.0
+    stats[0, :, 1, 0] = 50.0  # 50 m/s: over one cell a substep of 1e-3 s (20 m/s), not of 1e-4 s (200)
+    with pytest.raises(SimulationDiverged, match=r"frame 5: object 'b' \(parameter set 1\): speed 50 m/s exceeds"):
+        sim._diverged(stats.reshape(3, -1), 5, np.array([1e-4, 1e-3]))
+    stats[0, :, 1, 0] = 0.1
+    with pytest.raises(SimulationDiverged, match=r"frame 7: object 'a' \(parameter set 0\): 2 particle"):
+        sim._diverged(stats.reshape(3, -1), 5, 1e-3)
+    stats[2, 0, 0, 1] = 0
+    sim._diverged(stats.reshape(3, -1), 5, 1e-3)  # nothing at fault
+    sim._diverged(stats[0].ravel(), 5, 1e-3)  # one frame, as a frame checked at once
+
+
 def test_a_queued_rollout_that_diverges_says_so_by_its_wait_at_the_latest():
     sim = falling_ball("elastic", {"E": 3e4}, effects=(AntiDrag(rate=400.0),))
     with pytest.raises(SimulationDiverged) as raised:

@@ -1597,28 +1597,34 @@ class Simulator:
         self._run(kernels.check_state, self.n_batch * self.n_particles, state=state, stats=stats)
 
     def _diverged(self, stats: np.ndarray, frame: int, dt: float | np.ndarray) -> None:
-        """Raise ``SimulationDiverged`` if a frame's check statistics say so (``dt``: each row's, or all rows')."""
-        stats = stats.reshape(self.n_batch, self.n_objects, 4)
-        for b, row_dt in enumerate(np.broadcast_to(dt, (self.n_batch,)).tolist()):
-            limit = self.dx / row_dt
-            for k, o in enumerate(self.objects):
-                speed, bad, outside, det = stats[b, k]
-                reason = None
-                if bad > 0:
-                    reason = f"{int(bad)} particle(s) have non-finite positions, velocities or deformation"
-                elif speed > limit:
-                    reason = (f"speed {speed:.3g} m/s exceeds one grid cell per substep "
-                              f"({limit:.3g} m/s)")
-                elif det <= 1e-6:
-                    reason = f"the deformation inverted (det b = {det:.3g})"
-                elif outside > 0:
-                    reason = f"{int(outside)} particle(s) left the simulation domain; enlarge it"
-                if reason:
-                    values = ", ".join(f"{n}={self.params.get(n)[b, k]:.4g}"
-                                       for n in ("E", "nu", "density") if o.family != "fluid")
-                    raise SimulationDiverged(frame, o.name, b,
-                                             f"{reason} ({o.family}{'; ' + values if values else ''};"
-                                             f" dt={row_dt:.3g} s, dx={self.dx:g} m)")
+        """Raise ``SimulationDiverged`` at the first frame, row and object whose check statistics say so.
+
+        ``stats``: the statistics of one frame, ``frame``, or of consecutive frames from it
+        (each ``4 B K`` floats); ``dt``: each row's, or all rows'. Checked as arrays: a search
+        rollout's 30 frames of 32 rows took 1.7 ms of host time an element at a time.
+        """
+        stats = stats.reshape(-1, self.n_batch, self.n_objects, 4)
+        row_dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), (self.n_batch,))
+        limits = (self.dx / row_dt).astype(np.float32)
+        speed, bad, outside, det = np.moveaxis(stats, -1, 0)
+        failed = (bad > 0) | (speed > limits[None, :, None]) | (det <= 1e-6) | (outside > 0)
+        if not failed.any():
+            return
+        f, b, k = (int(i) for i in np.argwhere(failed)[0])
+        speed, bad, outside, det = stats[f, b, k]
+        if bad > 0:
+            reason = f"{int(bad)} particle(s) have non-finite positions, velocities or deformation"
+        elif speed > limits[b]:
+            reason = f"speed {speed:.3g} m/s exceeds one grid cell per substep ({limits[b]:.3g} m/s)"
+        elif det <= 1e-6:
+            reason = f"the deformation inverted (det b = {det:.3g})"
+        else:
+            reason = f"{int(outside)} particle(s) left the simulation domain; enlarge it"
+        o = self.objects[k]
+        values = ", ".join(f"{n}={self.params.get(n)[b, k]:.4g}" for n in ("E", "nu", "density") if o.family != "fluid")
+        raise SimulationDiverged(frame + f, o.name, b,
+                                 f"{reason} ({o.family}{'; ' + values if values else ''}; dt={row_dt[b]:.3g} s, "
+                                 f"dx={self.dx:g} m)")
 
     # --- rollouts and gradients ------------------------------------------------------------
 
@@ -1797,8 +1803,7 @@ class Simulator:
             if token != self._queued:
                 raise RuntimeError("a queued rollout was waited for after the simulator's next rollout")
             if check and not early:
-                for frame, frame_stats in enumerate(stats.numpy().reshape(n_frames, row)):
-                    self._diverged(frame_stats, start_frame + frame + 1, dt)
+                self._diverged(stats.numpy(), start_frame + 1, dt)
             self._record, self._final = record, state
             _LOG.debug("rollout: %d frames x %d substeps (dt %.3g s), %d particles x %d batches",
                        n_frames, n_sub, np.min(dt), N, B)
