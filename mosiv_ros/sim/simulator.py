@@ -1601,7 +1601,8 @@ class Simulator:
 
         ``stats``: the statistics of one frame, ``frame``, or of consecutive frames from it
         (each ``4 B K`` floats); ``dt``: each row's, or all rows'. Checked as arrays: a search
-        rollout's 30 frames of 32 rows took 1.7 ms of host time an element at a time.
+        rollout's 30 frames of 32 rows of 2 objects took 1.7 ms of host time an element
+        at a time, 0.03 ms as arrays.
         """
         stats = stats.reshape(-1, self.n_batch, self.n_objects, 4)
         row_dt = np.broadcast_to(np.asarray(dt, dtype=np.float64), (self.n_batch,))
