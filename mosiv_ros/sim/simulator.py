@@ -898,7 +898,7 @@ class Simulator:
             self.params.update(config.ground.initial())
         for effect in self.effects:
             self.params.update({f"{effect.name}.{k}": v for k, v in effect.initial.items()})
-        self.params.validate()
+        self.params.validate()  # the specs' defaults too; every later value is checked as it is set
         self._uniform_parts, self._uniform_sums = self._uniform_arrays()
 
         d = self.device
@@ -1727,7 +1727,6 @@ class Simulator:
                        initial: SimState | None, start_frame: int, progress, own_steps: bool,
                        download: bool) -> QueuedRollout:
         """``queue_rollout``; ``download``: the positions are copied to the host as they come (``_staging``)."""
-        self.params.validate()
         if own_steps:
             if substeps is not None:
                 raise ValueError("own_steps=True takes no substeps")
