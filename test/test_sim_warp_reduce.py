@@ -14,7 +14,9 @@ from sim_scenes import DEVICE
 
 from mosiv_ros.sim.runtime import load_modules
 from mosiv_ros.sim.simulator import _momentum_and_mass
-from mosiv_ros.sim.warp_reduce import add, run_start, scatter
+from mosiv_ros.sim.warp_reduce import add, clear_node, node_velocity, run_start, scatter
+
+PLANE_Z = 4  # the test grid's node stride along a plane's first axis (``scatter``'s dims_z)
 
 
 @wp.kernel
@@ -26,9 +28,22 @@ def _scatter_kernel(keys: wp.array(dtype=int), values: wp.array(dtype=float), sk
     key = keys[i]
     run = run_start(key)
     m = values[i]
-    for offset in range(2):  # two nodes per lane, as P2G's stencil has 27
-        scatter(grid_m, grid_p, 2 * key + offset, run, m * float(offset + 1),
-                wp.vec3(m, -2.0 * m, float(i)))
+    for plane in range(2):  # two planes of nine nodes per lane, as P2G's stencil has three
+        for c in range(3):
+            for e in range(3):
+                j = c * 3 + e
+                node = 2 * key + 2 * PLANE_Z * plane + PLANE_Z * c + e
+                scatter(grid_m, grid_p, node, j, PLANE_Z, run, m * float(j + plane + 1),
+                        wp.vec3(m, -2.0 * m, float(i + j)))
+
+
+@wp.kernel
+def _slot_kernel(grid_v: wp.array(dtype=wp.vec3), grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3),
+                 read: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    read[i] = node_velocity(grid_v, i)
+    if i % 2 == 0:
+        clear_node(grid_m, grid_p, i)
 
 
 @wp.kernel
@@ -48,10 +63,19 @@ def _keys(n: int, rng: np.random.Generator) -> np.ndarray:
     return keys.astype(np.int32)
 
 
+def _grids(nodes: int, interleaved: bool):
+    """(slots or None, grid_m, grid_p): the simulator's one slot a node, or masses and momenta apart."""
+    if interleaved:
+        slots = wp.zeros(nodes, dtype=wp.vec4, device=DEVICE)
+        grid_p, grid_m = _momentum_and_mass(slots, True)
+        return slots, grid_m, grid_p
+    return None, wp.zeros(nodes, dtype=float, device=DEVICE), wp.zeros(nodes, dtype=wp.vec3, device=DEVICE)
+
+
 @pytest.mark.parametrize("interleaved", [False, True], ids=["apart", "interleaved"])
 @pytest.mark.parametrize("n, skip", [(1000, 0), (77, 0), (1000, 3)])
 def test_scatter_sums_what_every_lane_adds(n, skip, interleaved):
-    """Into masses and momenta apart, and into the simulator's grids' one slot a node.
+    """Two planes of nine nodes a lane, into masses and momenta apart and into one slot a node.
 
     Interleaved, a device of compute capability 9.0 or later adds each run's four sums with
     one vector reduction; the slot holds the momentum, then the mass.
@@ -60,26 +84,50 @@ def test_scatter_sums_what_every_lane_adds(n, skip, interleaved):
     rng = np.random.default_rng(n + skip)
     keys = _keys(n, rng)
     values = rng.normal(size=n).astype(np.float32)
-    if interleaved:
-        nodes = wp.zeros(80, dtype=wp.vec4, device=DEVICE)
-        grid_p, grid_m = _momentum_and_mass(nodes, True)
-    else:
-        grid_m = wp.zeros(80, dtype=float, device=DEVICE)
-        grid_p = wp.zeros(80, dtype=wp.vec3, device=DEVICE)
+    nodes = 2 * 39 + 4 * PLANE_Z + 3
+    slots, grid_m, grid_p = _grids(nodes, interleaved)
     wp.launch(_scatter_kernel, dim=n, inputs=[wp.array(keys, dtype=int, device=DEVICE),
                                               wp.array(values, dtype=float, device=DEVICE), skip],
               outputs=[grid_m, grid_p], device=DEVICE)
     lanes = np.arange(n)
     kept = lanes % skip != 0 if skip else np.ones(n, dtype=bool)
-    want_m, want_p = np.zeros(80), np.zeros((80, 3))
-    for offset in range(2):
-        node = 2 * keys[kept] + offset
-        np.add.at(want_m, node, values[kept] * (offset + 1))
-        np.add.at(want_p, node, np.stack([values, -2 * values, lanes], axis=1)[kept])
-    assert np.allclose(grid_m.numpy(), want_m, rtol=1e-5, atol=1e-5)
-    assert np.allclose(grid_p.numpy(), want_p, rtol=1e-5, atol=1e-3)
+    want_m, want_p = np.zeros(nodes), np.zeros((nodes, 3))
+    for plane in range(2):
+        for c in range(3):
+            for e in range(3):
+                j = 3 * c + e
+                node = 2 * keys[kept] + 2 * PLANE_Z * plane + PLANE_Z * c + e
+                np.add.at(want_m, node, values[kept] * (j + plane + 1))
+                np.add.at(want_p, node, np.stack([values, -2 * values, lanes + j], axis=1)[kept])
+    assert np.allclose(grid_m.numpy(), want_m, rtol=1e-5, atol=1e-4)
+    assert np.allclose(grid_p.numpy(), want_p, rtol=1e-5, atol=1e-2)
     if interleaved:
-        assert np.array_equal(nodes.numpy(), np.concatenate([grid_p.numpy(), grid_m.numpy()[:, None]], axis=1))
+        assert np.array_equal(slots.numpy(), np.concatenate([grid_p.numpy(), grid_m.numpy()[:, None]], axis=1))
+
+
+@pytest.mark.parametrize("interleaved", [False, True], ids=["apart", "interleaved"])
+def test_g2p_reads_velocities_and_clears_nodes_in_either_layout(interleaved):
+    """``node_velocity`` reads a node's velocity and ``clear_node`` zeroes its mass and momentum.
+
+    Interleaved, the velocities are the slots' momenta (as after the simulator's grid update)
+    and a device of compute capability 9.0 or later loads and clears each slot whole.
+    """
+    load_modules(DEVICE, [__name__])
+    rng = np.random.default_rng(7)
+    n = 300
+    values = rng.normal(size=(n, 4)).astype(np.float32)
+    slots, grid_m, grid_p = _grids(n, interleaved)
+    grid_m.assign(values[:, 3])
+    grid_p.assign(values[:, :3])
+    read = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
+    wp.launch(_slot_kernel, dim=n, inputs=[grid_p, grid_m, grid_p], outputs=[read], device=DEVICE)
+    assert np.array_equal(read.numpy(), values[:, :3])
+    want = values.copy()
+    want[::2] = 0.0
+    assert np.array_equal(grid_p.numpy(), want[:, :3])
+    assert np.array_equal(grid_m.numpy(), want[:, 3])
+    if interleaved:
+        assert np.array_equal(slots.numpy(), want)
 
 
 @pytest.mark.parametrize("n, skip", [(1000, 0), (45, 0), (1000, 4)])

@@ -59,7 +59,7 @@ import warp as wp
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
 from mosiv_ros.sim.params import add_param, lane_particle, param
-from mosiv_ros.sim.warp_reduce import add, run_start, scatter
+from mosiv_ros.sim.warp_reduce import add, clear_node, node_velocity, run_start, scatter
 
 MAX_COLLIDERS = 2
 WALL = wp.constant(WALL_CELLS)
@@ -159,7 +159,7 @@ def scatter_plane(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3)
             weight = w_a * wy[c] * wz[e]
             node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
             p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
-            scatter(grid_m, grid_p, node, run, weight * mass, p_node * weight)
+            scatter(grid_m, grid_p, node, c * 3 + e, dims[2], run, weight * mass, p_node * weight)
 
 
 @wp.func_replay(scatter_plane)
@@ -1001,14 +1001,13 @@ def g2p(
         for c in range(3):
             for e in range(3):
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                g_w = grid_v[node] * (wx[a] * wy[c] * wz[e])
+                g_w = node_velocity(grid_v, node) * (wx[a] * wy[c] * wz[e])
                 new_v += g_w
                 moment_x += g_w * float(a)
                 moment_y += g_w * float(c)
                 moment_z += g_w * float(e)
                 if grid_clears != 0:
-                    grid_m[node] = 0.0
-                    grid_p[node] = wp.vec3(0.0)
+                    clear_node(grid_m, grid_p, node)
                     if grid_a.shape[0] > 0:
                         grid_a[node] = wp.vec3(0.0)
     new_C = (wp.mat33(moment_x[0], moment_y[0], moment_z[0], moment_x[1], moment_y[1], moment_z[1],

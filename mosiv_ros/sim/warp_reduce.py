@@ -10,10 +10,13 @@ bound by them (Nsight Compute: 64 % of the L2's throughput, 4 % of DRAM's, 649 o
 755 us at 1M particles).
 
 Here the lanes of a warp with the same key (the field node of their stencil's first corner, so
-that equal keys mean equal stencils) that sit next to each other form a run; each run sums its
-values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run steps)
-and its last lane does the one atomic add (for P2G's mass and momentum, one vector reduction
-where the device has it: ``scatter``). Neither function has an adjoint: P2G's adjoint
+that equal keys mean equal stencils) that sit next to each other form a run. ``add`` sums a
+run's values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run
+steps), and its last lane does the one atomic add. ``scatter``, P2G's, takes a plane of nine
+nodes at a time: the lanes stage their nine values in shared memory, and the lanes of each run
+sum them node by node, each lane a node, and add each sum once (one vector reduction for the
+mass and momentum where the device has it). ``clear_node`` and ``node_velocity`` are G2P's
+16-byte store and load of a node's slot. No function here has an adjoint: P2G's adjoint
 reads its stencil's nodes in a function of its own (``kernels.scatter_plane``).
 
 On the CPU (no warps; the threads of a launch run in order) every function is the plain atomic
@@ -68,25 +71,48 @@ def _scan(*names: str) -> str:
 """
 
 
+# Whether grid_m and grid_p are the simulator's one aligned 16-byte slot a node, momentum then mass
+_SLOTS = """(char*)grid_m.data == (char*)grid_p.data + 12 && grid_m.strides[0] == 16 \
+        && grid_p.strides[0] == 16 && ((size_t)grid_p.data & 15) == 0"""
+
 _SCATTER = """
 #if defined(__CUDA_ARCH__)
+    // Node j of the plane is staged in this lane's row of shared memory; the ninth call sums
+    // the rows of each run node by node, a lane of the run a node, and adds each sum once.
+    __shared__ float4 staged[256 * 9];
+    if (blockDim.x > 256) {  // Warp 1.4 launches blocks of 256 threads; any more add lane by lane
+        wp::atomic_add(grid_m, node, m);
+        wp::atomic_add(grid_p, node, p);
+        return;
+    }
+    staged[threadIdx.x * 9 + j] = make_float4(p[0], p[1], p[2], m);
+    if (j == 8) {
 """ + _RUN + """
-    float sum_m = m, sum_x = p[0], sum_y = p[1], sum_z = p[2];
-""" + _scan("sum_m", "sum_x", "sum_y", "sum_z") + """
-    if (tail) {
+        const unsigned tails = __ballot_sync(mask, tail);
+        const int length = __ffs(tails & (0xffffffffu << lane)) - start;  // lanes start to its tail
+        const int first = threadIdx.x - lane + start;
+        __syncwarp(mask);
+        for (int k = lane - start; k < 9; k += length) {
+            float4 sum = staged[first * 9 + k];
+            for (int q = 1; q < length; ++q) {
+                const float4 row = staged[(first + q) * 9 + k];
+                sum.x += row.x; sum.y += row.y; sum.z += row.z; sum.w += row.w;
+            }
+            const int target = node - (2 - k / 3) * dims_z - (2 - k % 3);
 #if __CUDA_ARCH__ >= 900
-        float* const slot = (float*)((char*)grid_p.data + (size_t)node * grid_p.strides[0]);
-        if ((char*)grid_m.data == (char*)grid_p.data + 12 && grid_m.strides[0] == 16 && grid_p.strides[0] == 16
-                && ((size_t)grid_p.data & 15) == 0) {
-            asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};"
-                         :: "l"(__cvta_generic_to_global(slot)), "f"(sum_x), "f"(sum_y), "f"(sum_z), "f"(sum_m)
-                         : "memory");
-        } else
+            if (""" + _SLOTS + """) {
+                float* const slot = (float*)((char*)grid_p.data + (size_t)target * 16);
+                asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};"
+                             :: "l"(__cvta_generic_to_global(slot)), "f"(sum.x), "f"(sum.y), "f"(sum.z), "f"(sum.w)
+                             : "memory");
+            } else
 #endif
-        {
-            wp::atomic_add(grid_m, node, sum_m);
-            wp::atomic_add(grid_p, node, wp::vec3(sum_x, sum_y, sum_z));
+            {
+                wp::atomic_add(grid_m, target, sum.w);
+                wp::atomic_add(grid_p, target, wp::vec3(sum.x, sum.y, sum.z));
+            }
         }
+        __syncwarp(mask);  // the rows are read before the next plane's first call writes them
     }
 #else
     wp::atomic_add(grid_m, node, m);
@@ -114,14 +140,19 @@ def run_start(key: int) -> int:
 
 
 @wp.func_native(_SCATTER)
-def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node: int, run: int,
-            m: float, p: wp.vec3):
-    """grid_m[node] += m and grid_p[node] += p, once per run of lanes (``run_start``); no adjoint.
+def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node: int, j: int, dims_z: int,
+            run: int, m: float, p: wp.vec3):
+    """grid_m[node] += m and grid_p[node] += p for node ``j`` = 3 c + e of a plane of a stencil.
 
+    A lane calls it for j = 0, ..., 8 in order, from nodes whose index steps by ``dims_z`` with
+    c and by one with e (``kernels.node_index``). The first eight calls stage their values in
+    shared memory; the ninth adds the nine sums of each run of lanes (``run_start``), a lane of
+    the run a node, instead of each lane adding each of its nodes (P2G's scatter on an H200:
+    28.6 against 22.1 us a substep for 32 rows of a 2,744-particle block; docs/simulator.md).
     Where each node's mass follows its momentum in one aligned 16-byte slot (the simulator's
     grids, ``simulator._momentum_and_mass``) and the code is built for compute capability 9.0
-    or later, the run adds the four floats with one vector reduction (``red.global.add.v4.f32``),
-    one request to the L2 instead of two. P2G's adjoint gathers its nodes' adjoints itself
+    or later, a sum is added with one vector reduction (``red.global.add.v4.f32``), one request
+    to the L2 instead of two. No adjoint: P2G's adjoint gathers its nodes' adjoints itself
     (``kernels.scatter_plane``).
     """
     ...
@@ -130,4 +161,40 @@ def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node
 @wp.func_native(_ADD)
 def add(target: wp.array(dtype=wp.vec3), node: int, run: int, value: wp.vec3):
     """target[node] += value, once per run of lanes (``run_start``); not differentiable."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (""" + _SLOTS + """) {
+        *(float4*)((char*)grid_p.data + (size_t)node * 16) = make_float4(0.0f, 0.0f, 0.0f, 0.0f);
+        return;
+    }
+#endif
+    wp::index(grid_m, node) = 0.0f;
+    wp::index(grid_p, node) = wp::vec3(0.0f);
+""")
+def clear_node(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node: int):
+    """grid_m[node] = 0 and grid_p[node] = 0: one 16-byte store where they share a slot (G2P)."""
+    ...
+
+
+@wp.func_native("""
+#if defined(__CUDA_ARCH__)
+    if (grid_v.strides[0] == 16 && ((size_t)grid_v.data & 15) == 0) {
+        const float4 slot = *(const float4*)((const char*)grid_v.data + (size_t)node * 16);
+        return wp::vec3(slot.x, slot.y, slot.z);
+    }
+#endif
+    return wp::index(grid_v, node);
+""", adj_snippet="""
+    if (adj_grid_v.data)
+        wp::atomic_add(adj_grid_v, node, adj_ret);
+""")
+def node_velocity(grid_v: wp.array(dtype=wp.vec3), node: int) -> wp.vec3:
+    """grid_v[node]: one 16-byte load where the velocities are the slots' momenta (G2P).
+
+    Its adjoint is the read's (``kernels.g2p_adjoint`` is G2P's; tests hold it to the one Warp
+    generates from ``kernels.g2p``).
+    """
     ...
