@@ -13,8 +13,8 @@ import warp as wp
 from sim_scenes import DEVICE
 
 from mosiv_ros.sim.runtime import load_modules
-from mosiv_ros.sim.simulator import _momentum_and_mass
-from mosiv_ros.sim.warp_reduce import add, clear_node, node_velocity, run_start, scatter
+from mosiv_ros.sim.simulator import _momentum_and_mass, _slot_vectors
+from mosiv_ros.sim.warp_reduce import add, clear_node, run_start, scatter
 
 PLANE_Z = 4  # the test grid's node stride along a plane's first axis (``scatter``'s dims_z)
 
@@ -38,10 +38,8 @@ def _scatter_kernel(keys: wp.array(dtype=int), values: wp.array(dtype=float), sk
 
 
 @wp.kernel
-def _slot_kernel(grid_v: wp.array(dtype=wp.vec3), grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3),
-                 read: wp.array(dtype=wp.vec3)):
+def _clear_kernel(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3)):
     i = wp.tid()
-    read[i] = node_velocity(grid_v, i)
     if i % 2 == 0:
         clear_node(grid_m, grid_p, i)
 
@@ -106,12 +104,8 @@ def test_scatter_sums_what_every_lane_adds(n, skip, interleaved):
 
 
 @pytest.mark.parametrize("interleaved", [False, True], ids=["apart", "interleaved"])
-def test_g2p_reads_velocities_and_clears_nodes_in_either_layout(interleaved):
-    """``node_velocity`` reads a node's velocity and ``clear_node`` zeroes its mass and momentum.
-
-    Interleaved, the velocities are the slots' momenta (as after the simulator's grid update)
-    and a device of compute capability 9.0 or later loads and clears each slot whole.
-    """
+def test_clear_node_zeroes_a_nodes_mass_and_momentum_in_either_layout(interleaved):
+    """Interleaved, a device of compute capability 9.0 or later clears each slot with one store."""
     load_modules(DEVICE, [__name__])
     rng = np.random.default_rng(7)
     n = 300
@@ -119,9 +113,7 @@ def test_g2p_reads_velocities_and_clears_nodes_in_either_layout(interleaved):
     slots, grid_m, grid_p = _grids(n, interleaved)
     grid_m.assign(values[:, 3])
     grid_p.assign(values[:, :3])
-    read = wp.zeros(n, dtype=wp.vec3, device=DEVICE)
-    wp.launch(_slot_kernel, dim=n, inputs=[grid_p, grid_m, grid_p], outputs=[read], device=DEVICE)
-    assert np.array_equal(read.numpy(), values[:, :3])
+    wp.launch(_clear_kernel, dim=n, inputs=[grid_m, grid_p], device=DEVICE)
     want = values.copy()
     want[::2] = 0.0
     assert np.array_equal(grid_p.numpy(), want[:, :3])
@@ -130,17 +122,28 @@ def test_g2p_reads_velocities_and_clears_nodes_in_either_layout(interleaved):
         assert np.array_equal(slots.numpy(), want)
 
 
+@pytest.mark.parametrize("slots", [False, True], ids=["vectors", "slots"])
 @pytest.mark.parametrize("n, skip", [(1000, 0), (45, 0), (1000, 4)])
-def test_add_sums_what_every_lane_adds(n, skip):
+def test_add_sums_what_every_lane_adds(n, skip, slots):
+    """Into an array of vectors, and into the first three floats of 16-byte slots (the grids' velocity
+    gradients on a device of compute capability 9.0 or later, which adds them with one vector reduction).
+    """
     load_modules(DEVICE, [__name__])
     rng = np.random.default_rng(n + skip)
     keys = _keys(n, rng)
     weights = rng.normal(size=n).astype(np.float32)
-    target = wp.array(rng.normal(size=(40, 3)).astype(np.float32), dtype=wp.vec3, device=DEVICE)
-    want = target.numpy().astype(np.float64)
+    start = rng.normal(size=(40, 4)).astype(np.float32)
+    if slots:
+        memory = wp.array(start, dtype=wp.vec4, device=DEVICE)
+        target = _slot_vectors(memory)
+    else:
+        target = wp.array(start[:, :3], dtype=wp.vec3, device=DEVICE)
+    want = start[:, :3].astype(np.float64)
     wp.launch(_add_kernel, dim=n, inputs=[wp.array(keys, dtype=int, device=DEVICE),
                                           wp.array(weights, dtype=float, device=DEVICE), skip, target],
               device=DEVICE)
     kept = np.arange(n) % skip != 0 if skip else np.ones(n, dtype=bool)
     np.add.at(want, keys[kept], weights[kept, None] * np.array([1.0, 2.0, -1.0]))
     assert np.allclose(target.numpy(), want, rtol=1e-5, atol=1e-4)
+    if slots:
+        assert np.array_equal(memory.numpy()[:, 3], start[:, 3])  # the slots' fourth floats are left as they were

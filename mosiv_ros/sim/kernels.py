@@ -59,7 +59,7 @@ import warp as wp
 from mosiv_ros.sim.boundaries import WALL_CELLS
 from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
 from mosiv_ros.sim.params import add_param, lane_particle, param
-from mosiv_ros.sim.warp_reduce import add, clear_node, node_velocity, run_start, scatter
+from mosiv_ros.sim.warp_reduce import add, clear_node, run_start, scatter
 
 MAX_COLLIDERS = 2
 WALL = wp.constant(WALL_CELLS)
@@ -1001,7 +1001,7 @@ def g2p(
         for c in range(3):
             for e in range(3):
                 node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
-                g_w = node_velocity(grid_v, node) * (wx[a] * wy[c] * wz[e])
+                g_w = grid_v[node] * (wx[a] * wy[c] * wz[e])
                 new_v += g_w
                 moment_x += g_w * float(a)
                 moment_y += g_w * float(c)

@@ -425,10 +425,17 @@ def _momentum_and_mass(nodes: wp.array, interleaved: bool) -> tuple[wp.array, wp
     vec3 = wp.types.type_size_in_bytes(wp.vec3)
     if interleaved:
         stride = wp.types.type_size_in_bytes(wp.vec4)
-        return (wp.array(ptr=nodes.ptr, dtype=wp.vec3, shape=(n,), strides=(stride,), device=device, owner=False),
+        return (_slot_vectors(nodes),
                 wp.array(ptr=nodes.ptr + vec3, dtype=float, shape=(n,), strides=(stride,), device=device, owner=False))
     return (wp.array(ptr=nodes.ptr, dtype=wp.vec3, shape=(n,), device=device, owner=False),
             wp.array(ptr=nodes.ptr + n * vec3, dtype=float, shape=(n,), device=device, owner=False))
+
+
+def _slot_vectors(slots: wp.array) -> wp.array:
+    """The first three floats of each 16-byte slot of ``slots`` (``wp.vec4``), as a strided ``wp.vec3`` view."""
+    stride = wp.types.type_size_in_bytes(wp.vec4)
+    return wp.array(ptr=slots.ptr, dtype=wp.vec3, shape=slots.shape, strides=(stride,), device=slots.device,
+                    owner=False)
 
 
 def vector_reductions(device: str) -> bool:
@@ -497,20 +504,28 @@ class _Grid:
     particle adds its mass and momentum with the same weight), so G2P reads what a zeroed ``v``
     held, and a substep clears a third less memory. A tape needs the momenta for the adjoint,
     and with several objects the grid update of one field reads the momenta of the others at
-    its node (``kernels.grid_update``'s contact sums), so there ``v`` has its own.
+    its node (``kernels.grid_update``'s contact sums), so there ``v`` has its own. Where a grid
+    keeps gradients on a device with vector reductions, that array is 16 bytes a node and ``v``
+    the first three floats of each (``_slot_vectors``), so that G2P's adjoint adds a run's
+    velocity adjoint with one vector reduction (``warp_reduce.add``); a search batch's grid,
+    which has no adjoint, keeps 12 bytes a node.
     """
 
     def __init__(self, n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
                  stress: bool, device: str, requires_grad: bool, accelerated: bool = True,
                  memory: Memory | None = None, clears: bool = False) -> None:
         # the differentiable arrays (``arrays``) first, their gradients in an arena of their own
-        (nodes, self.a, self.v, self.tau), self._values, self._grads = _arrays(
-            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad, clears),
-            device, requires_grad, memory)
         interleaved = vector_reductions(device)
+        (nodes, self.a, self.v, self.tau), self._values, self._grads = _arrays(
+            self.specs(n_batch, n_objects, dims, n_particles, stress, accelerated, requires_grad, clears,
+                       interleaved), device, requires_grad, memory)
         self.p, self.m = _momentum_and_mass(nodes, interleaved)
         if requires_grad:
             self.p.grad, self.m.grad = _momentum_and_mass(nodes.grad, interleaved)
+        if self.v.dtype == wp.vec4:  # slots, only where gradients are kept (class docstring)
+            slots = self.v
+            self.v = _slot_vectors(slots)
+            self.v.grad = _slot_vectors(slots.grad)
         if not self.own_velocities(n_objects, requires_grad, clears):
             self.v = self.p
         self.clears = int(clears)
@@ -521,17 +536,20 @@ class _Grid:
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-              stress: bool, accelerated: bool, requires_grad: bool, clears: bool = False) -> list[tuple[int, type]]:
+              stress: bool, accelerated: bool, requires_grad: bool, clears: bool = False,
+              interleaved: bool = False) -> list[tuple[int, type]]:
         """The arrays' sizes and types.
 
         Momenta and masses in one array of 16 bytes a node (``_momentum_and_mass``);
         accelerations and stresses only where an effect adds them, velocities apart from the
-        momenta only where ``own_velocities``.
+        momenta only where ``own_velocities`` (16 bytes a node where ``interleaved`` and
+        ``requires_grad``: class docstring).
         """
         n_grid = n_batch * n_objects * int(np.prod(dims))
         velocities = _Grid.own_velocities(n_objects, requires_grad, clears)
         return [(n_grid, wp.vec4), (n_grid if accelerated else 0, wp.vec3),
-                (n_grid if velocities else 0, wp.vec3), (n_particles if stress else 0, wp.mat33)]
+                (n_grid if velocities else 0, wp.vec4 if interleaved and requires_grad else wp.vec3),
+                (n_particles if stress else 0, wp.mat33)]
 
     @staticmethod
     def own_velocities(n_objects: int, requires_grad: bool, clears: bool = False) -> bool:
@@ -1909,7 +1927,8 @@ class Simulator:
         B, total, d = self.n_batch, self.n_batch * self.n_particles, self.device
         state_bytes = _Arena.offsets(_State.specs(total))[-1]
         grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
-                                                self._accelerated, True))[-1]
+                                                self._accelerated, True,
+                                                interleaved=vector_reductions(self.device)))[-1]
         # the arenas' sizes are multiples of ALIGN: in the frame's arenas they lie back to back
         state, grid = _Arena.raw(state_bytes), _Arena.raw(grid_bytes)
         specs = [state, grid] * capacity + [state]

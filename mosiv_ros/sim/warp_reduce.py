@@ -12,11 +12,12 @@ bound by them (Nsight Compute: 64 % of the L2's throughput, 4 % of DRAM's, 649 o
 Here the lanes of a warp with the same key (the field node of their stencil's first corner, so
 that equal keys mean equal stencils) that sit next to each other form a run. ``add`` sums a
 run's values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run
-steps), and its last lane does the one atomic add. ``scatter``, P2G's, takes a plane of nine
+steps), and its last lane does the one add (one vector reduction where the target is the
+first three floats of 16-byte slots and the device has it). ``scatter``, P2G's, takes a plane of nine
 nodes at a time: the lanes stage their nine values in shared memory, and the lanes of each run
 sum them node by node, each lane a node, and add each sum once (one vector reduction for the
-mass and momentum where the device has it). ``clear_node`` and ``node_velocity`` are G2P's
-16-byte store and load of a node's slot. No function here has an adjoint: P2G's adjoint
+mass and momentum where the device has it). ``clear_node`` is G2P's 16-byte store that
+clears a node's slot. No function here has an adjoint: P2G's adjoint
 reads its stencil's nodes in a function of its own (``kernels.scatter_plane``).
 
 On the CPU (no warps; the threads of a launch run in order) every function is the plain atomic
@@ -125,8 +126,17 @@ _ADD = """
 """ + _RUN + """
     float sum_x = value[0], sum_y = value[1], sum_z = value[2];
 """ + _scan("sum_x", "sum_y", "sum_z") + """
-    if (tail)
+    if (tail) {
+#if __CUDA_ARCH__ >= 900
+        if (target.strides[0] == 16 && ((size_t)target.data & 15) == 0) {  // the first three floats of slots
+            float* const slot = (float*)((char*)target.data + (size_t)node * 16);
+            asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};"
+                         :: "l"(__cvta_generic_to_global(slot)), "f"(sum_x), "f"(sum_y), "f"(sum_z), "f"(0.0f)
+                         : "memory");
+        } else
+#endif
         wp::atomic_add(target, node, wp::vec3(sum_x, sum_y, sum_z));
+    }
 #else
     wp::atomic_add(target, node, value);
 #endif
@@ -160,7 +170,14 @@ def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node
 
 @wp.func_native(_ADD)
 def add(target: wp.array(dtype=wp.vec3), node: int, run: int, value: wp.vec3):
-    """target[node] += value, once per run of lanes (``run_start``); not differentiable."""
+    """target[node] += value, once per run of lanes (``run_start``); not differentiable.
+
+    Where ``target`` is the first three floats of aligned 16-byte slots (the velocity gradients
+    of the simulator's grids on a device of compute capability 9.0 or later,
+    ``simulator._slot_vectors``), a run adds with one vector reduction, its fourth float zero,
+    instead of three atomics (G2P's adjoint on an H200: a million particles' backward
+    (``sim_throughput.py``) took 0.89 times as long, docs/simulator.md).
+    """
     ...
 
 
@@ -176,25 +193,4 @@ def add(target: wp.array(dtype=wp.vec3), node: int, run: int, value: wp.vec3):
 """)
 def clear_node(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node: int):
     """grid_m[node] = 0 and grid_p[node] = 0: one 16-byte store where they share a slot (G2P)."""
-    ...
-
-
-@wp.func_native("""
-#if defined(__CUDA_ARCH__)
-    if (grid_v.strides[0] == 16 && ((size_t)grid_v.data & 15) == 0) {
-        const float4 slot = *(const float4*)((const char*)grid_v.data + (size_t)node * 16);
-        return wp::vec3(slot.x, slot.y, slot.z);
-    }
-#endif
-    return wp::index(grid_v, node);
-""", adj_snippet="""
-    if (adj_grid_v.data)
-        wp::atomic_add(adj_grid_v, node, adj_ret);
-""")
-def node_velocity(grid_v: wp.array(dtype=wp.vec3), node: int) -> wp.vec3:
-    """grid_v[node]: one 16-byte load where the velocities are the slots' momenta (G2P).
-
-    Its adjoint is the read's (``kernels.g2p_adjoint`` is G2P's; tests hold it to the one Warp
-    generates from ``kernels.g2p``).
-    """
     ...
