@@ -13,12 +13,12 @@ Here the lanes of a warp with the same key (the field node of their stencil's fi
 that equal keys mean equal stencils) that sit next to each other form a run. ``add`` sums a
 run's values with a segmented scan over warp shuffles (Hillis-Steele, log2 of the longest run
 steps), and its last lane does the one add (one vector reduction where the target is the
-first three floats of 16-byte slots and the device has it). ``scatter``, P2G's, takes a plane of nine
-nodes at a time: the lanes stage their nine values in shared memory, and the lanes of each run
-sum them node by node, each lane a node, and add each sum once (one vector reduction for the
-mass and momentum where the device has it). ``clear_node`` is G2P's 16-byte store that
-clears a node's slot. No function here has an adjoint: P2G's adjoint
-reads its stencil's nodes in a function of its own (``kernels.scatter_plane``).
+first three floats of 16-byte slots and the device has it). ``scatter``, P2G's, takes a plane
+of nine nodes at a time: the lanes stage their nine values in shared memory, and the lanes of
+each run sum them node by node, each lane a node, and add each sum once (one vector reduction
+for the mass and momentum where the device has it). ``clear_node`` is G2P's 16-byte store
+that clears a node's slot. No function here has an adjoint: P2G's adjoint reads its
+stencil's nodes in a function of its own (``kernels.scatter_plane``).
 
 On the CPU (no warps; the threads of a launch run in order) every function is the plain atomic
 add it replaces, so CPU results are unchanged to the bit. Runs are recomputed in every
@@ -158,7 +158,7 @@ def scatter(grid_m: wp.array(dtype=float), grid_p: wp.array(dtype=wp.vec3), node
     c and by one with e (``kernels.node_index``). The first eight calls stage their values in
     shared memory; the ninth adds the nine sums of each run of lanes (``run_start``), a lane of
     the run a node, instead of each lane adding each of its nodes (P2G's scatter on an H200:
-    28.6 against 22.1 us a substep for 32 rows of a 2,744-particle block; docs/simulator.md).
+    22.1 against 28.6 us a substep for 32 rows of a 2,744-particle block; docs/simulator.md).
     Where each node's mass follows its momentum in one aligned 16-byte slot (the simulator's
     grids, ``simulator._momentum_and_mass``) and the code is built for compute capability 9.0
     or later, a sum is added with one vector reduction (``red.global.add.v4.f32``), one request
@@ -175,8 +175,8 @@ def add(target: wp.array(dtype=wp.vec3), node: int, run: int, value: wp.vec3):
     Where ``target`` is the first three floats of aligned 16-byte slots (the velocity gradients
     of the simulator's grids on a device of compute capability 9.0 or later,
     ``simulator._slot_vectors``), a run adds with one vector reduction, its fourth float zero,
-    instead of three atomics (G2P's adjoint on an H200: a million particles' backward
-    (``sim_throughput.py``) took 0.89 times as long, docs/simulator.md).
+    instead of three atomics (G2P's adjoint; on an H200 a million particles' backward in
+    ``sim_throughput.py`` took about 0.88 times as long, docs/simulator.md).
     """
     ...
 
