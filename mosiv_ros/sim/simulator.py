@@ -536,14 +536,16 @@ class _Grid:
 
     @staticmethod
     def specs(n_batch: int, n_objects: int, dims: tuple[int, int, int], n_particles: int,
-              stress: bool, accelerated: bool, requires_grad: bool, clears: bool = False,
-              interleaved: bool = False) -> list[tuple[int, type]]:
+              stress: bool, accelerated: bool, requires_grad: bool, clears: bool,
+              interleaved: bool) -> list[tuple[int, type]]:
         """The arrays' sizes and types.
 
         Momenta and masses in one array of 16 bytes a node (``_momentum_and_mass``);
         accelerations and stresses only where an effect adds them, velocities apart from the
         momenta only where ``own_velocities`` (16 bytes a node where ``interleaved`` and
-        ``requires_grad``: class docstring).
+        ``requires_grad``: class docstring). ``interleaved`` is ``vector_reductions``'s answer for
+        the grid's device, which a frame tape's arena, sized from these specs, must share with
+        the grids laid out in it.
         """
         n_grid = n_batch * n_objects * int(np.prod(dims))
         velocities = _Grid.own_velocities(n_objects, requires_grad, clears)
@@ -1927,8 +1929,8 @@ class Simulator:
         B, total, d = self.n_batch, self.n_batch * self.n_particles, self.device
         state_bytes = _Arena.offsets(_State.specs(total))[-1]
         grid_bytes = _Arena.offsets(_Grid.specs(B, self.n_objects, self.dims, total, self._stress,
-                                                self._accelerated, True,
-                                                interleaved=vector_reductions(self.device)))[-1]
+                                                self._accelerated, True, False,
+                                                vector_reductions(self.device)))[-1]
         # the arenas' sizes are multiples of ALIGN: in the frame's arenas they lie back to back
         state, grid = _Arena.raw(state_bytes), _Arena.raw(grid_bytes)
         specs = [state, grid] * capacity + [state]

@@ -72,6 +72,15 @@ def _scan(*names: str) -> str:
 """
 
 
+def _red_v4(slot: str, x: str, y: str, z: str, w: str) -> str:
+    """CUDA that adds the floats x, y, z, w to the aligned 16-byte slot at ``slot`` (a ``float*``) in one request."""
+    return f"""
+            asm volatile("red.global.add.v4.f32 [%0], {{%1, %2, %3, %4}};"
+                         :: "l"(__cvta_generic_to_global({slot})), "f"({x}), "f"({y}), "f"({z}), "f"({w})
+                         : "memory");
+"""
+
+
 # Whether grid_m and grid_p are the simulator's one aligned 16-byte slot a node, momentum then mass
 _SLOTS = """(char*)grid_m.data == (char*)grid_p.data + 12 && grid_m.strides[0] == 16 \
         && grid_p.strides[0] == 16 && ((size_t)grid_p.data & 15) == 0"""
@@ -102,10 +111,7 @@ _SCATTER = """
             const int target = node - (2 - k / 3) * dims_z - (2 - k % 3);
 #if __CUDA_ARCH__ >= 900
             if (""" + _SLOTS + """) {
-                float* const slot = (float*)((char*)grid_p.data + (size_t)target * 16);
-                asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};"
-                             :: "l"(__cvta_generic_to_global(slot)), "f"(sum.x), "f"(sum.y), "f"(sum.z), "f"(sum.w)
-                             : "memory");
+""" + _red_v4("(float*)((char*)grid_p.data + (size_t)target * 16)", "sum.x", "sum.y", "sum.z", "sum.w") + """
             } else
 #endif
             {
@@ -129,10 +135,7 @@ _ADD = """
     if (tail) {
 #if __CUDA_ARCH__ >= 900
         if (target.strides[0] == 16 && ((size_t)target.data & 15) == 0) {  // the first three floats of slots
-            float* const slot = (float*)((char*)target.data + (size_t)node * 16);
-            asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};"
-                         :: "l"(__cvta_generic_to_global(slot)), "f"(sum_x), "f"(sum_y), "f"(sum_z), "f"(0.0f)
-                         : "memory");
+""" + _red_v4("(float*)((char*)target.data + (size_t)node * 16)", "sum_x", "sum_y", "sum_z", "0.0f") + """
         } else
 #endif
         wp::atomic_add(target, node, wp::vec3(sum_x, sum_y, sum_z));
