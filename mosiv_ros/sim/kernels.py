@@ -1173,7 +1173,6 @@ def g2p_adjoint(
     adj_src_x[i] = adj_src_x[i] + adj_x + adj_fx * inv_dx
 
 
-
 @wp.func
 def particle_stress(family: int, C: wp.mat33, b: wp.mat33, h: float, E: float, nu: float, yield_stress: float,
                     friction_angle: float, bulk_modulus: float, viscosity: float):
