@@ -223,7 +223,7 @@ def kirchhoff_stress(
 
 
 # The adjoints of the particle's update, written out for P2G's written adjoint
-# (``kernels.p2g_adjoint``): each takes the same inputs as its function and the adjoint of its
+# (``kernels.p2g_adjoint_kernel``): each takes the same inputs as its function and the adjoint of its
 # result, and returns the adjoints of its inputs. Where a function branches, the adjoint takes
 # the branch the function takes, computed by the same expressions. The two radial returns
 # below are written in the closed form their branch equals: with n = |dev(b)|, both set

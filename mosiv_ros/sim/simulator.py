@@ -754,7 +754,8 @@ _G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_n
 """The arguments of ``kernels.g2p`` whose adjoints ``kernels.g2p_adjoint`` takes after them, in order."""
 _P2G_ADJOINTS = ("src_x", "src_v", "src_C", "src_b", "volume", "grid_tau", "E", "nu", "yield_stress", "friction_angle",
                  "bulk_modulus", "viscosity", "density", "dst_b", "grid_m", "grid_p")
-"""The arguments of ``kernels.p2g`` whose adjoints ``kernels.p2g_adjoint`` takes after them, in order."""
+"""The arguments of ``kernels.p2g`` whose adjoints its written adjoint takes after them, in order
+(``kernels.p2g_adjoint_kernel``)."""
 _GRID_UPDATE_ADJOINTS = ("grid_m", "grid_p", "grid_a", "uniform", "friction", "ground_normal", "ground_friction",
                          "grid_v")
 """The arguments of the grid update whose adjoints its written adjoint takes after them, in order."""
@@ -945,11 +946,14 @@ class Simulator:
         # the grid update for this many objects, without the colliders' code where there are none
         self._grid_update, grid_adjoint = kernels.grid_update_kernels(
             kernels.MAX_COLLIDERS if self.config.colliders else 0, self.n_objects)
+        # P2G's written adjoint, for the scene's one family if it has one (kernels.p2g_adjoint_kernel)
+        families = {FAMILY_CODES[model.family] for model in self.objects}
+        p2g_adjoint = kernels.p2g_adjoint_kernel(families.pop() if len(families) == 1 else -1)
         # every kernel's adjoint is Warp's but these, written out (kernels.g2p_adjoint says why)
         self._written = {kernels.g2p: (kernels.g2p_adjoint, _G2P_ADJOINTS),
-                         kernels.p2g: (kernels.p2g_adjoint, _P2G_ADJOINTS),
+                         kernels.p2g: (p2g_adjoint, _P2G_ADJOINTS),
                          self._grid_update: (grid_adjoint, _GRID_UPDATE_ADJOINTS)}
-        load_modules(self.device, [self._grid_update.module.name])
+        load_modules(self.device, [self._grid_update.module.name, p2g_adjoint.module.name])
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
