@@ -269,6 +269,46 @@ def test_gradients_with_a_moving_collider_match_finite_differences():
     check(sim, target, "E", (0, 0), 0.001 * abs(sim.params.get("E")[0, 0]))
 
 
+def generated_twin(forward, written, names: tuple):
+    """(Warp's kernel of ``forward``'s function with its generated adjoint, ``forward``'s argument names).
+
+    The forward kernel has no generated adjoint of its own; ``written`` must take its arguments,
+    then the adjoints of those that ``names`` lists.
+    """
+    import warp as wp
+
+    generated = wp.Kernel(forward.func, key=f"{forward.key}_with_generated_adjoint", module=wp.get_module(__name__),
+                          options={"enable_backward": True})
+    labels = [arg.label for arg in forward.adj.args]
+    assert [arg.label for arg in written.adj.args] == [*labels, *(f"adj_{name}" for name in names)]
+    return generated, labels
+
+
+def written_adjoint_matches(tape, written, dim: int, args: list, inputs: dict, outputs: list, names: tuple,
+                            rng: np.random.Generator, rtol: float, atol: float, unused: tuple = ()) -> None:
+    """Assert a written adjoint kernel adds what Warp's generated adjoint on ``tape`` adds.
+
+    The outputs' adjoints are seeded at random and ``tape`` run backward; then ``written`` runs
+    over ``dim`` threads from zeroed input adjoints, with the forward's ``args``, the
+    ``outputs``, the adjoints of the inputs that ``names`` lists, then the outputs' adjoints.
+    Every input's adjoint must be within ``rtol``, and ``atol`` times its largest magnitude, of
+    Warp's, and nonzero unless ``unused`` names it (then both are zero).
+    """
+    import warp as wp
+
+    for out in outputs:
+        out.grad.assign(rng.normal(size=out.grad.numpy().shape).astype(np.float32))
+    tape.backward()
+    warps = {name: array.grad.numpy().copy() for name, array in inputs.items()}
+    for array in inputs.values():
+        array.grad.zero_()
+    wp.launch(written, dim, inputs=[*args, *outputs, *(inputs[name].grad for name in names[:len(names) - len(outputs)]),
+                                    *(out.grad for out in outputs)], device=DEVICE)
+    for name, array in inputs.items():
+        assert (np.abs(warps[name]).max() > 0) != (name in unused), name
+        assert np.allclose(array.grad.numpy(), warps[name], rtol=rtol, atol=atol * np.abs(warps[name]).max()), name
+
+
 def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
     """``kernels.g2p_adjoint`` against Warp's generated adjoint of ``kernels.g2p``'s function on random inputs.
 
@@ -283,11 +323,7 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
     from mosiv_ros.sim.simulator import _G2P_ADJOINTS
 
     # kernels.g2p has no generated adjoint: the same function, built here with one
-    generated = wp.Kernel(kernels.g2p.func, key="g2p_with_generated_adjoint", module=wp.get_module(__name__),
-                          options={"enable_backward": True})
-    g2p_args = [arg.label for arg in kernels.g2p.adj.args]
-    assert [arg.label for arg in kernels.g2p_adjoint.adj.args] == [
-        *g2p_args, *(f"adj_{name}" for name in _G2P_ADJOINTS)]
+    generated, g2p_args = generated_twin(kernels.g2p, kernels.g2p_adjoint, _G2P_ADJOINTS)
     rng = np.random.default_rng(3)
     B, N, K, dims, dx = 2, 400, 2, (8, 7, 9), 0.1
     G = int(np.prod(dims))
@@ -320,17 +356,89 @@ def test_g2p_written_adjoint_adds_what_warps_generated_adjoint_adds():
     below = (outputs[0].numpy()[:N] @ np.array([0.1, 0.2, 1.0]) / np.linalg.norm([0.1, 0.2, 1.0])
              < 0.45 + 1e-6)
     assert 0.2 < below.mean() < 0.8  # the ground's projection and its adjoint are exercised
-    for out in outputs:
-        out.grad.assign(rng.normal(size=out.grad.numpy().shape).astype(np.float32))
-    tape.backward()
-    warps = {name: array.grad.numpy().copy() for name, array in inputs.items()}
-    for array in inputs.values():
-        array.grad.zero_()
-    wp.launch(kernels.g2p_adjoint, B * N, inputs=[*args, *outputs, *(inputs[name].grad for name in _G2P_ADJOINTS[:6]),
-                                                  *(out.grad for out in outputs)], device=DEVICE)
-    for name, array in inputs.items():
-        assert np.abs(warps[name]).max() > 0, name
-        assert np.allclose(array.grad.numpy(), warps[name], rtol=1e-5, atol=1e-6 * np.abs(warps[name]).max()), name
+    written_adjoint_matches(tape, kernels.g2p_adjoint, B * N, args, inputs, outputs, _G2P_ADJOINTS, rng, 1e-5, 1e-6)
+
+
+
+@pytest.mark.parametrize("only", [-1, 0, 1, 2, 3], ids=["any", "elastic", "plastic", "sand", "fluid"])
+def test_p2g_written_adjoint_adds_what_warps_generated_adjoint_adds(only):
+    """P2G's written adjoint against Warp's generated adjoint of ``kernels.p2g``'s function on random inputs.
+
+    Two rows (the second past its own substeps, so it only copies b), four objects, trial
+    states that take every branch of the return mappings (a plastic particle inside and outside
+    its yield surface; sand in tension, inside its cone and outside it), an effect's stress,
+    random velocities, affine fields and output adjoints: every input's adjoint within float32
+    rounding of Warp's. The objects are one of each family for the kernel of any family, and
+    all of one family for that family's (``kernels.p2g_adjoint_kernel``).
+    """
+    import warp as wp
+
+    from mosiv_ros.sim import kernels
+    from mosiv_ros.sim.materials import ALL, FAMILY_PARAMS, MATERIAL_PARAM_NAMES
+    from mosiv_ros.sim.params import REPLICAS
+    from mosiv_ros.sim.simulator import _P2G_ADJOINTS
+
+    # kernels.p2g has no generated adjoint: the same function, built here with one
+    written = kernels.p2g_adjoint_kernel(only)
+    generated, p2g_args = generated_twin(kernels.p2g, written, _P2G_ADJOINTS)
+    rng = np.random.default_rng(11)
+    B, N, K, dims, dx = 2, 480, 4, (8, 7, 9), 0.1
+    G = int(np.prod(dims))
+    h = np.float32(2e-3)
+
+    def array(values, dtype, grad=True):
+        return wp.array(np.asarray(values, np.float32), dtype=dtype, device=DEVICE, requires_grad=grad)
+
+    def per_object(values):  # a parameter's replicas, the same values in both rows
+        return array(np.repeat(np.tile(values, B), REPLICAS), float)
+
+    obj = np.arange(N) % K
+    families = np.arange(K) if only < 0 else np.full(K, only)  # elastic, plastic, sand, fluid by code
+    stretch = rng.uniform(0.85, 1.15, size=(B * N, 1, 1)) * np.eye(3)
+    L = stretch + rng.normal(scale=0.12, size=(B * N, 3, 3))
+    b = L @ np.transpose(L, (0, 2, 1))
+    C = rng.normal(scale=3.0, size=(B * N, 3, 3))
+    E, nu = np.array([2e4, 3e4, 2.5e4, 1e4]), np.array([0.3, 0.25, 0.2, 0.3])
+    yield_stress, friction_angle = np.array([1e4, 5e3, 1e4, 1e4]), np.array([0.5, 0.5, 1.0, 0.5])
+    inputs = {"src_x": array(rng.uniform(0.15, 0.6, size=(B * N, 3)), wp.vec3),
+              "src_v": array(rng.normal(size=(B * N, 3)), wp.vec3), "src_C": array(C, wp.mat33),
+              "src_b": array(b, wp.mat33), "volume": array(rng.uniform(0.5e-4, 2e-4, size=B * N), float),
+              "grid_tau": array(rng.normal(scale=50.0, size=(B * N, 3, 3)), wp.mat33),
+              "E": per_object(E), "nu": per_object(nu), "yield_stress": per_object(yield_stress),
+              "friction_angle": per_object(friction_angle), "bulk_modulus": per_object([1e4, 1e4, 1e4, 2e4]),
+              "viscosity": per_object([1.0, 1.0, 1.0, 0.5]), "density": per_object([1e3, 1.2e3, 1.5e3, 1e3])}
+    outputs = [array(np.zeros((B * N, 3, 3)), wp.mat33), array(np.zeros(B * K * G), float),
+               array(np.zeros((B * K * G, 3)), wp.vec3)]
+    given = {**inputs, "obj": wp.array(obj.astype(np.int32), dtype=int, device=DEVICE),
+             "family": wp.array(families.astype(np.int32), dtype=int, device=DEVICE),
+             "n_particles": N, "plane_threads": B * N, "part": 0, "parts": 1, "plane_warps": 8, "n_objects": K,
+             "n_nodes": G, "dims": wp.vec3i(*dims), "lo": wp.vec3(0.0), "dx": dx,
+             "own_dt": array([h, h], float, grad=False),
+             "own_substeps": wp.array([5, 3], dtype=int, device=DEVICE), "substep": 4}
+    args = [given[name] for name in p2g_args[:-3]]
+    tape = wp.Tape()
+    with tape:
+        wp.launch(generated, B * N, inputs=args, outputs=outputs, device=DEVICE)
+    # the branches the first row's trial states take (materials.return_mapping)
+    f = np.eye(3) + C[:N] * h
+    trial = f @ b[:N] @ np.transpose(f, (0, 2, 1))
+    J = np.sqrt(np.linalg.det(trial))
+    mu = E[obj] / (2 * (1 + nu[obj]))
+    kappa = E[obj] * nu[obj] / ((1 + nu[obj]) * (1 - 2 * nu[obj])) + 2 / 3 * mu
+    dev = trial - np.trace(trial, axis1=1, axis2=2)[:, None, None] / 3 * np.eye(3)
+    s = mu * J ** (-2 / 3) * np.sqrt((dev ** 2).sum(axis=(1, 2)))
+    sin_phi = np.sin(friction_angle[obj])
+    p = 0.5 * kappa * (J * J - 1)
+    plastic, sand = families[obj] == 1, families[obj] == 2
+    yielded = s > np.sqrt(2 / 3) * yield_stress[obj]
+    outside = s > -3 * np.sqrt(2 / 3) * 2 * sin_phi / (3 - sin_phi) * p
+    shares = [yielded[plastic].mean()] if plastic.any() else []
+    if sand.any():
+        shares += [(p >= 0)[sand].mean(), (outside & (p < 0))[sand].mean(), (~outside & (p < 0))[sand].mean()]
+    for share in shares:
+        assert 0.1 < share < 0.9
+    unused = () if only < 0 else tuple(set(MATERIAL_PARAM_NAMES) - set(FAMILY_PARAMS[ALL[only]]))
+    written_adjoint_matches(tape, written, B * N, args, inputs, outputs, _P2G_ADJOINTS, rng, 1e-4, 1e-5, unused)
 
 
 @pytest.mark.parametrize("colliders, objects", [(0, 1), (0, 2), (2, 2), (0, 3)])

@@ -35,9 +35,10 @@ mu_kl = (mu_k + mu_l) / 2 (MOSIV), exactly mu_kl for two objects. For two object
 corrections are equal and opposite, so momentum is conserved.
 
 Everything here is differentiable on a ``wp.Tape``: outputs go to fresh arrays and the only
-accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's and
-the grid update's, which are written out (``g2p_adjoint``: Warp's kept 255 registers live on a
-GPU; ``grid_update_kernels``), and P2G's scatter, whose adjoint Warp calls in place of its own
+accumulations are ``wp.atomic_add``. The backward pass runs Warp's adjoints, except G2P's, the
+grid update's and P2G's with one thread a particle, which are written out (``g2p_adjoint``,
+``p2g_adjoint_kernel``: Warp's kept 251-255 registers live on a GPU; ``grid_update_kernels``), and P2G's
+scatter with three threads a particle, whose adjoint Warp calls in place of its own
 (``scatter_plane``'s). Tests hold each written adjoint to the one Warp generates from the same
 forward function, which therefore stays differentiable by Warp. Warp's adjoint of a loop whose
 bound is known only at run time gets a differentiable value the loop carries wrong (a sum over
@@ -57,7 +58,13 @@ import functools
 import warp as wp
 
 from mosiv_ros.sim.boundaries import WALL_CELLS
-from mosiv_ros.sim.materials import kirchhoff_stress, return_mapping
+from mosiv_ros.sim.materials import (
+    kirchhoff_stress,
+    kirchhoff_stress_adjoint,
+    lame_adjoint,
+    return_mapping,
+    return_mapping_adjoint,
+)
 from mosiv_ros.sim.params import add_param, lane_particle, param
 from mosiv_ros.sim.warp_reduce import add, clear_node, run_start, scatter
 
@@ -232,10 +239,11 @@ def _p2g(planes: int) -> wp.Kernel:
     nearly every multiprocessor idle, and a launch takes as long as one thread's chain of work:
     three shorter chains side by side cost less than one long one, the stress computed three
     times included (``Simulator._spread`` picks the planes, ``simulator._p2g_planes``; one on
-    the CPU, where every thread costs).
+    the CPU, where every thread costs). With one thread a particle its adjoint is written out
+    (``p2g_adjoint_kernel``), so Warp generates one only for three.
     """
 
-    @wp.kernel
+    @wp.kernel(enable_backward=planes == 3)
     def p2g(
         src_x: wp.array(dtype=wp.vec3),
         src_v: wp.array(dtype=wp.vec3),
@@ -1164,6 +1172,201 @@ def g2p_adjoint(
                      wp.dot(adj_wz, bspline_slopes(fx[2]))) - wp.transpose(adj_C) * gathered
     adj_src_x[i] = adj_src_x[i] + adj_x + adj_fx * inv_dx
 
+
+@wp.func
+def particle_stress(family: int, C: wp.mat33, b: wp.mat33, h: float, E: float, nu: float, yield_stress: float,
+                    friction_angle: float, bulk_modulus: float, viscosity: float):
+    """P2G's Kirchhoff stress of a particle from its state before the substep (its written adjoint's first part)."""
+    f = wp.identity(n=3, dtype=float) + C * h
+    b_new = return_mapping(family, f * b * wp.transpose(f), E, nu, yield_stress, friction_angle)
+    return kirchhoff_stress(family, b_new, C, E, nu, bulk_modulus, viscosity)
+
+
+@functools.cache
+def p2g_adjoint_kernel(only: int) -> wp.Kernel:
+    """``p2g``'s written adjoint for particles of one family (its ``materials.FAMILY_CODES`` code), or of any (-1).
+
+    Built for one family, the other families' code is left out: for the elastic family, nvcc
+    for sm_90 puts it at 128 registers a thread, against 168 for every family, so that two
+    256-thread blocks fit a multiprocessor. Each variant is a Warp module of its own, built when
+    a scene first needs it (``Simulator``), as ``grid_update_kernels``' are.
+    """
+    key = f"p2g_adjoint_{only}" if only >= 0 else "p2g_adjoint_any"
+    module = wp.context.get_module(f"{__name__}.{key}")
+
+    def p2g_adjoint(
+        src_x: wp.array(dtype=wp.vec3),
+        src_v: wp.array(dtype=wp.vec3),
+        src_C: wp.array(dtype=wp.mat33),
+        src_b: wp.array(dtype=wp.mat33),
+        volume: wp.array(dtype=float),
+        grid_tau: wp.array(dtype=wp.mat33),
+        obj: wp.array(dtype=int),
+        family: wp.array(dtype=int),
+        E: wp.array(dtype=float),
+        nu: wp.array(dtype=float),
+        yield_stress: wp.array(dtype=float),
+        friction_angle: wp.array(dtype=float),
+        bulk_modulus: wp.array(dtype=float),
+        viscosity: wp.array(dtype=float),
+        density: wp.array(dtype=float),
+        n_particles: int,
+        plane_threads: int,
+        part: int,
+        parts: int,
+        plane_warps: int,
+        n_objects: int,
+        n_nodes: int,
+        dims: wp.vec3i,
+        lo: wp.vec3,
+        dx: float,
+        own_dt: wp.array(dtype=float),
+        own_substeps: wp.array(dtype=int),
+        substep: int,
+        dst_b: wp.array(dtype=wp.mat33),
+        grid_m: wp.array(dtype=float),
+        grid_p: wp.array(dtype=wp.vec3),
+        adj_src_x: wp.array(dtype=wp.vec3),
+        adj_src_v: wp.array(dtype=wp.vec3),
+        adj_src_C: wp.array(dtype=wp.mat33),
+        adj_src_b: wp.array(dtype=wp.mat33),
+        adj_volume: wp.array(dtype=float),
+        adj_grid_tau: wp.array(dtype=wp.mat33),
+        adj_E: wp.array(dtype=float),
+        adj_nu: wp.array(dtype=float),
+        adj_yield_stress: wp.array(dtype=float),
+        adj_friction_angle: wp.array(dtype=float),
+        adj_bulk_modulus: wp.array(dtype=float),
+        adj_viscosity: wp.array(dtype=float),
+        adj_density: wp.array(dtype=float),
+        adj_dst_b: wp.array(dtype=wp.mat33),
+        adj_grid_m: wp.array(dtype=float),
+        adj_grid_p: wp.array(dtype=wp.vec3),
+    ):
+        """The adjoint of ``p2g`` (one thread a particle), written out: adds to its inputs' adjoints as Warp's would.
+
+        The first arguments are ``p2g``'s, then the adjoints (``.grad``) of its arrays that carry
+        one. Warp's generated adjoint replays the particle's update and keeps its intermediates
+        for the reverse sweep: 255 registers a thread on a GPU, one 256-thread block a
+        multiprocessor. Here the stress is computed first and the stencil's node adjoints gathered
+        into running sums (as ``scatter_plane``'s adjoint does); then the particle's state is read
+        again for the material update's adjoint (``materials.return_mapping_adjoint``,
+        ``kirchhoff_stress_adjoint``), so that the state does not stay live across the gather. The
+        particle's own adjoints are added without atomics: one thread writes them (on the CPU the
+        parts of a launch take disjoint particles, ``params.lane_particle``). P2G with three
+        threads a particle (``p2g_planes``) keeps Warp's adjoint.
+        """
+        i = block_particle(lane_particle(wp.tid(), part, parts), plane_warps, src_x.shape[0])
+        if i < 0:
+            return
+        batch = i // n_particles
+        if not own_turn(own_substeps, batch, substep):
+            adj_src_b[i] = adj_src_b[i] + adj_dst_b[i]
+            return
+        h = own_dt[batch]
+        k = obj[i - batch * n_particles]
+        q = batch * n_objects + k
+        if wp.static(only >= 0):  # the family a constant of the code: the others' code left out
+            fam = wp.static(only)
+        else:
+            fam = family[k]
+        x_i = src_x[i]
+        C_i = src_C[i]
+        inv_dx = 1.0 / dx
+        vol = volume[i]
+        rho = param(density, q, i)
+        mass = rho * vol
+        tau = particle_stress(fam, C_i, src_b[i], h, param(E, q, i), param(nu, q, i), param(yield_stress, q, i),
+                              param(friction_angle, q, i), param(bulk_modulus, q, i), param(viscosity, q, i))
+        if grid_tau.shape[0] > 0:
+            tau = tau + grid_tau[i]
+        stress_scale = -h * 4.0 * inv_dx * inv_dx  # affine = tau stress_scale vol + C mass
+        moved = (tau * (stress_scale * vol) + C_i * mass) * dx
+        base = stencil_base(x_i, lo, inv_dx, dims)
+        fx = (x_i - lo) * inv_dx - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+        wx = bspline_weights(fx[0])
+        wy = bspline_weights(fx[1])
+        wz = bspline_weights(fx[2])
+        offset = q * n_nodes
+        v_i = src_v[i]
+        at_origin = v_i * mass - moved * fx
+        per_x = wp.vec3(moved[0, 0], moved[1, 0], moved[2, 0])
+        per_y = wp.vec3(moved[0, 1], moved[1, 1], moved[2, 1])
+        per_z = wp.vec3(moved[0, 2], moved[1, 2], moved[2, 2])
+        # node (a, c, e) got weight (mass, p_node), p_node = at_origin + per_x a + per_y c + per_z e
+        adj_wx = wp.vec3(0.0)
+        adj_wy = wp.vec3(0.0)
+        adj_wz = wp.vec3(0.0)
+        adj_mass = float(0.0)
+        adj_origin = wp.vec3(0.0)  # sum of weight gp
+        adj_x_col = wp.vec3(0.0)  # sum of a weight gp, per_x's adjoint; likewise along y and z
+        adj_y_col = wp.vec3(0.0)
+        adj_z_col = wp.vec3(0.0)
+        for a in range(3):
+            for c in range(3):
+                for e in range(3):
+                    node = offset + node_index(base[0] + a, base[1] + c, base[2] + e, dims)
+                    gm = adj_grid_m[node]
+                    gp = adj_grid_p[node]
+                    weight = wx[a] * wy[c] * wz[e]
+                    p_node = at_origin + per_x * float(a) + per_y * float(c) + per_z * float(e)
+                    d_weight = gm * mass + wp.dot(gp, p_node)
+                    adj_wx[a] = adj_wx[a] + d_weight * wy[c] * wz[e]
+                    adj_wy[c] = adj_wy[c] + d_weight * wx[a] * wz[e]
+                    adj_wz[e] = adj_wz[e] + d_weight * wx[a] * wy[c]
+                    adj_mass += weight * gm
+                    weighted = gp * weight
+                    adj_origin += weighted
+                    adj_x_col += weighted * float(a)
+                    adj_y_col += weighted * float(c)
+                    adj_z_col += weighted * float(e)
+        # at_origin = v mass - moved fx
+        adj_moved = wp.mat33(adj_x_col[0], adj_y_col[0], adj_z_col[0], adj_x_col[1], adj_y_col[1], adj_z_col[1],
+                             adj_x_col[2], adj_y_col[2], adj_z_col[2]) - wp.outer(adj_origin, fx)
+        adj_fx = wp.vec3(wp.dot(adj_wx, bspline_slopes(fx[0])), wp.dot(adj_wy, bspline_slopes(fx[1])),
+                         wp.dot(adj_wz, bspline_slopes(fx[2]))) - wp.transpose(moved) * adj_origin
+        adj_src_x[i] = adj_src_x[i] + adj_fx * inv_dx
+        adj_src_v[i] = adj_src_v[i] + adj_origin * mass
+        adj_affine = adj_moved * dx
+        adj_tau = adj_affine * (stress_scale * vol)
+        adj_mass += wp.dot(adj_origin, v_i) + wp.ddot(adj_affine, C_i)
+        if adj_density.shape[0] > 0:
+            add_param(adj_density, q, i, adj_mass * vol)
+        if adj_volume.shape[0] > 0:
+            adj_volume[i] = adj_volume[i] + wp.ddot(adj_affine, tau) * stress_scale + adj_mass * rho
+        if adj_grid_tau.shape[0] > 0:
+            adj_grid_tau[i] = adj_grid_tau[i] + adj_tau
+        # the material update's adjoint, from the state read again: b' = return_mapping(f b f^T), f = I + h C
+        b_i = src_b[i]
+        E_q = param(E, q, i)
+        nu_q = param(nu, q, i)
+        f = wp.identity(n=3, dtype=float) + C_i * h
+        b_trial = f * b_i * wp.transpose(f)
+        b_new = return_mapping(fam, b_trial, E_q, nu_q, param(yield_stress, q, i), param(friction_angle, q, i))
+        adj_b_new, adj_C, adj_mu, adj_lambda, adj_bulk_q, adj_viscosity_q = kirchhoff_stress_adjoint(
+            fam, b_new, C_i, E_q, nu_q, param(bulk_modulus, q, i), param(viscosity, q, i), adj_tau)
+        adj_trial, adj_mu_r, adj_lambda_r, adj_yield_q, adj_angle_q = return_mapping_adjoint(
+            fam, b_trial, E_q, nu_q, param(yield_stress, q, i), param(friction_angle, q, i), adj_b_new + adj_dst_b[i])
+        adj_E_q, adj_nu_q = lame_adjoint(E_q, nu_q, adj_mu + adj_mu_r, adj_lambda + adj_lambda_r)
+        add_material_param(adj_E, q, i, adj_E_q)
+        add_material_param(adj_nu, q, i, adj_nu_q)
+        add_material_param(adj_yield_stress, q, i, adj_yield_q)
+        add_material_param(adj_friction_angle, q, i, adj_angle_q)
+        add_material_param(adj_bulk_modulus, q, i, adj_bulk_q)
+        add_material_param(adj_viscosity, q, i, adj_viscosity_q)
+        # b_trial = f b f^T
+        adj_f = adj_trial * (f * wp.transpose(b_i)) + wp.transpose(adj_trial) * (f * b_i)
+        adj_src_b[i] = adj_src_b[i] + wp.transpose(f) * adj_trial * f
+        adj_src_C[i] = adj_src_C[i] + adj_affine * mass + adj_C + adj_f * h
+
+    return wp.Kernel(p2g_adjoint, key=key, module=module, options={"enable_backward": False})
+
+
+@wp.func
+def add_material_param(grads: wp.array(dtype=float), index: int, tid: int, value: float):
+    """``add_param`` where the gradient is kept and ``value`` is not zero (a family's unused parameters)."""
+    if grads.shape[0] > 0 and value != 0.0:
+        add_param(grads, index, tid, value)
 
 @wp.kernel(enable_backward=False)
 def check_state(

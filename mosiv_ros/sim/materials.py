@@ -220,3 +220,126 @@ def kirchhoff_stress(
         kappa = lame_lambda(E, nu) + 2.0 / 3.0 * mu
         tau = I * (0.5 * kappa * (J * J - 1.0)) + deviator(isochoric_split(b, J)) * mu
     return tau
+
+
+# The adjoints of the particle's update, written out for P2G's written adjoint
+# (``kernels.p2g_adjoint_kernel``): each takes the same inputs as its function and the adjoint of its
+# result, and returns the adjoints of its inputs. Where a function branches, the adjoint takes
+# the branch the function takes, computed by the same expressions. The two radial returns
+# below are written in the closed form their branch equals: with n = |dev(b)|, both set
+# b <- r dev(b) + tr(b) / 3 I, r = limit J^(2/3) / (mu n).
+
+
+@wp.func
+def lame_adjoint(E: float, nu: float, adj_mu: float, adj_lambda: float):
+    """The adjoints of E and nu, given those of ``lame_mu`` and ``lame_lambda``."""
+    one_nu = 1.0 + nu
+    d = one_nu * (1.0 - 2.0 * nu)
+    return (adj_mu / (2.0 * one_nu) + adj_lambda * nu / d,
+            -adj_mu * E / (2.0 * one_nu * one_nu) + adj_lambda * E * (1.0 + 2.0 * nu * nu) / (d * d))
+
+
+@wp.func
+def radial_return_adjoint(b: wp.mat33, r: float, adj: wp.mat33):
+    """(adj_b, adj_r) of r dev(b) + tr(b) / 3 I with r fixed, given the adjoint ``adj`` of the result."""
+    adj_dev = deviator(adj)
+    return adj_dev * r + wp.identity(n=3, dtype=float) * (wp.trace(adj) / 3.0), wp.ddot(adj_dev, b)
+
+
+@wp.func
+def return_mapping_adjoint(family: int, b: wp.mat33, E: float, nu: float, yield_stress: float,
+                           friction_angle: float, adj: wp.mat33):
+    """(adj_b, adj_mu, adj_lambda, adj_yield_stress, adj_friction_angle) of ``return_mapping``.
+
+    ``b`` is its trial b and ``adj`` the adjoint of its result; mu and lambda are E and nu's
+    Lame parameters (``lame_adjoint``).
+    """
+    adj_b = adj
+    adj_mu = float(0.0)
+    adj_lambda = float(0.0)
+    adj_yield = float(0.0)
+    adj_angle = float(0.0)
+    if family == FLUID:  # b' = det(b)^(1/3) I
+        adj_b = wp.transpose(wp.inverse(b)) * (wp.trace(adj) / 3.0 * wp.pow(wp.determinant(b), 1.0 / 3.0))
+    elif family == PLASTIC or family == SAND:
+        mu = lame_mu(E, nu)
+        kappa = lame_lambda(E, nu) + 2.0 / 3.0 * mu
+        J = wp.sqrt(wp.determinant(b))
+        limit = wp.sqrt(2.0 / 3.0) * yield_stress
+        p = 0.5 * kappa * (J * J - 1.0)
+        sin_phi = wp.sin(friction_angle)
+        alpha = wp.sqrt(2.0 / 3.0) * 2.0 * sin_phi / (3.0 - sin_phi)
+        if family == SAND:
+            limit = -3.0 * alpha * p
+        s = mu * deviator(isochoric_split(b, J))
+        if family == SAND and p >= 0.0:  # the stress-free tip: b' = I
+            adj_b = wp.mat33(0.0)
+        elif wp.ddot(s, s) > limit * limit:
+            dev_b = deviator(b)
+            n_sq = wp.ddot(dev_b, dev_b)
+            unit = wp.pow(J, 2.0 / 3.0) / (mu * wp.sqrt(n_sq))  # r / limit
+            r = limit * unit
+            adj_b, adj_r = radial_return_adjoint(b, r, adj)
+            # d ln r / db = (1/3) b^-T - dev(b) / n^2, besides the limit's own dependence on b
+            inv_t = wp.transpose(wp.inverse(b))
+            adj_b = adj_b + (inv_t * (1.0 / 3.0) - dev_b / n_sq) * (adj_r * r)
+            adj_mu = -adj_r * r / mu
+            adj_limit = adj_r * unit
+            if family == PLASTIC:
+                adj_yield = adj_limit * wp.sqrt(2.0 / 3.0)
+            else:  # limit = -3 alpha p, p = kappa / 2 (det b - 1)
+                adj_p = -3.0 * alpha * adj_limit
+                adj_b = adj_b + inv_t * (adj_p * 0.5 * kappa * J * J)
+                adj_kappa = adj_p * 0.5 * (J * J - 1.0)
+                adj_mu += 2.0 / 3.0 * adj_kappa
+                adj_lambda = adj_kappa
+                three = 3.0 - sin_phi
+                adj_angle = -3.0 * p * adj_limit * wp.sqrt(2.0 / 3.0) * 6.0 * wp.cos(friction_angle) / (three * three)
+    return adj_b, adj_mu, adj_lambda, adj_yield, adj_angle
+
+
+@wp.func
+def kirchhoff_stress_adjoint(family: int, b: wp.mat33, C: wp.mat33, E: float, nu: float,
+                             bulk_modulus: float, viscosity: float, adj: wp.mat33):
+    """(adj_b, adj_C, adj_mu, adj_lambda, adj_bulk_modulus, adj_viscosity) of ``kirchhoff_stress``.
+
+    ``adj`` is the adjoint of tau; mu and lambda as in ``return_mapping_adjoint``.
+    """
+    I = wp.identity(n=3, dtype=float)
+    det = wp.determinant(b)
+    J = wp.sqrt(det)
+    inv_t = wp.transpose(wp.inverse(b))  # d det / db = det b^-T
+    tr = wp.trace(adj)
+    adj_C = wp.mat33(0.0)
+    adj_mu = float(0.0)
+    adj_lambda = float(0.0)
+    adj_bulk = float(0.0)
+    adj_viscosity = float(0.0)
+    adj_b = wp.mat33(0.0)
+    if family == FLUID:
+        # tau = -J p I + J eta S, -J p = -K (J^(1 - gamma) - J) / gamma, S = C + C^T - 2/3 tr(C) I
+        power = wp.pow(J, -TAIT_GAMMA)
+        strain_rate = C + wp.transpose(C) - I * (2.0 / 3.0 * wp.trace(C))
+        adj_S = wp.ddot(adj, strain_rate)
+        adj_J = tr * (-bulk_modulus * ((1.0 - TAIT_GAMMA) * power - 1.0) / TAIT_GAMMA) + viscosity * adj_S
+        adj_b = inv_t * (adj_J * 0.5 * J)
+        adj_bulk = -tr * J * (power - 1.0) / TAIT_GAMMA
+        adj_viscosity = J * adj_S
+        adj_C = (adj + wp.transpose(adj) - I * (2.0 / 3.0 * tr)) * (J * viscosity)
+    elif family == ELASTIC:
+        mu = lame_mu(E, nu)
+        adj_b = adj * mu + inv_t * (0.5 * lame_lambda(E, nu) * tr)
+        adj_mu = wp.ddot(adj, b - I)
+        adj_lambda = tr * wp.log(J)
+    else:
+        # tau = kappa / 2 (det b - 1) I + mu det(b)^(-1/3) dev(b)
+        mu = lame_mu(E, nu)
+        kappa = lame_lambda(E, nu) + 2.0 / 3.0 * mu
+        scale = wp.pow(J, -2.0 / 3.0)
+        adj_dev = deviator(adj)
+        along = wp.ddot(adj_dev, b)
+        adj_b = inv_t * (0.5 * kappa * tr * J * J - mu * along * scale / 3.0) + adj_dev * (mu * scale)
+        adj_kappa = 0.5 * (J * J - 1.0) * tr
+        adj_mu = scale * along + 2.0 / 3.0 * adj_kappa
+        adj_lambda = adj_kappa
+    return adj_b, adj_C, adj_mu, adj_lambda, adj_bulk, adj_viscosity

@@ -752,6 +752,10 @@ SUBSTEP_HEADROOM = 1.15
 _G2P_ADJOINTS = ("src_x", "src_v", "src_C", "grid_v", "ground_height", "ground_normal", "dst_x", "dst_v",
                  "dst_C")
 """The arguments of ``kernels.g2p`` whose adjoints ``kernels.g2p_adjoint`` takes after them, in order."""
+_P2G_ADJOINTS = ("src_x", "src_v", "src_C", "src_b", "volume", "grid_tau", "E", "nu", "yield_stress", "friction_angle",
+                 "bulk_modulus", "viscosity", "density", "dst_b", "grid_m", "grid_p")
+"""The arguments of ``kernels.p2g`` whose adjoints its written adjoint takes after them, in order
+(``kernels.p2g_adjoint_kernel``)."""
 _GRID_UPDATE_ADJOINTS = ("grid_m", "grid_p", "grid_a", "uniform", "friction", "ground_normal", "ground_friction",
                          "grid_v")
 """The arguments of the grid update whose adjoints its written adjoint takes after them, in order."""
@@ -942,10 +946,14 @@ class Simulator:
         # the grid update for this many objects, without the colliders' code where there are none
         self._grid_update, grid_adjoint = kernels.grid_update_kernels(
             kernels.MAX_COLLIDERS if self.config.colliders else 0, self.n_objects)
+        # P2G's written adjoint, for the scene's one family if it has one (kernels.p2g_adjoint_kernel)
+        families = {FAMILY_CODES[model.family] for model in self.objects}
+        p2g_adjoint = kernels.p2g_adjoint_kernel(families.pop() if len(families) == 1 else -1)
         # every kernel's adjoint is Warp's but these, written out (kernels.g2p_adjoint says why)
         self._written = {kernels.g2p: (kernels.g2p_adjoint, _G2P_ADJOINTS),
+                         kernels.p2g: (p2g_adjoint, _P2G_ADJOINTS),
                          self._grid_update: (grid_adjoint, _GRID_UPDATE_ADJOINTS)}
-        load_modules(self.device, [self._grid_update.module.name])
+        load_modules(self.device, [self._grid_update.module.name, p2g_adjoint.module.name])
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
@@ -1492,7 +1500,7 @@ class Simulator:
             adjoint, names = written
             labels = self._labels_of(kernel)
             adjoints = [tape.get_adjoint(args[labels[name]]) for name in names]
-            self._adjoint_launch(key, adjoint, dim, max_blocks, [*args, *adjoints], tape, written=True)
+            self._adjoint_launch(key, adjoint, dim, max_blocks, [*args, *adjoints], tape, helper, written=True)
         else:
             self._adjoint_launch(key, kernel, dim, max_blocks, args, tape, helper)
 
@@ -1536,6 +1544,8 @@ class Simulator:
         Its command is kept under ``key`` and an argument is set again only where it changed
         (``_Command``), as ``_cpu_adjoint`` does for Warp's adjoints.
         """
+        if dim == 0:  # a part of a launch that has no particles (``params.lane_count``): nothing to run
+            return
         kept = self._written_commands.get(key)
         if kept is None or kept.command.kernel is not kernel:
             command = wp.launch(kernel, dim, inputs=args, device=self.device, record_tape=False, record_cmd=True)
