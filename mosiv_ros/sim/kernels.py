@@ -1174,6 +1174,13 @@ def g2p_adjoint(
 
 
 @wp.func
+def add_material_param(grads: wp.array(dtype=float), index: int, tid: int, value: float):
+    """``add_param`` where the gradient is kept and ``value`` is not zero (a family's unused parameters)."""
+    if grads.shape[0] > 0 and value != 0.0:
+        add_param(grads, index, tid, value)
+
+
+@wp.func
 def particle_stress(family: int, C: wp.mat33, b: wp.mat33, h: float, E: float, nu: float, yield_stress: float,
                     friction_angle: float, bulk_modulus: float, viscosity: float):
     """P2G's Kirchhoff stress of a particle from its state before the substep (its written adjoint's first part)."""
@@ -1293,7 +1300,10 @@ def p2g_adjoint_kernel(only: int) -> wp.Kernel:
         per_x = wp.vec3(moved[0, 0], moved[1, 0], moved[2, 0])
         per_y = wp.vec3(moved[0, 1], moved[1, 1], moved[2, 1])
         per_z = wp.vec3(moved[0, 2], moved[1, 2], moved[2, 2])
-        # node (a, c, e) got weight (mass, p_node), p_node = at_origin + per_x a + per_y c + per_z e
+        # node (a, c, e) got weight (mass, p_node), p_node = at_origin + per_x a + per_y c + per_z e.
+        # The sums are scatter_plane's adjoint's over three planes, written in this loop: the same
+        # nine-node sums called as a function of several results took the kernel from 168 to 254
+        # registers (nvcc for sm_90).
         adj_wx = wp.vec3(0.0)
         adj_wy = wp.vec3(0.0)
         adj_wz = wp.vec3(0.0)
@@ -1330,8 +1340,7 @@ def p2g_adjoint_kernel(only: int) -> wp.Kernel:
         adj_affine = adj_moved * dx
         adj_tau = adj_affine * (stress_scale * vol)
         adj_mass += wp.dot(adj_origin, v_i) + wp.ddot(adj_affine, C_i)
-        if adj_density.shape[0] > 0:
-            add_param(adj_density, q, i, adj_mass * vol)
+        add_material_param(adj_density, q, i, adj_mass * vol)
         if adj_volume.shape[0] > 0:
             adj_volume[i] = adj_volume[i] + wp.ddot(adj_affine, tau) * stress_scale + adj_mass * rho
         if adj_grid_tau.shape[0] > 0:
@@ -1361,12 +1370,6 @@ def p2g_adjoint_kernel(only: int) -> wp.Kernel:
 
     return wp.Kernel(p2g_adjoint, key=key, module=module, options={"enable_backward": False})
 
-
-@wp.func
-def add_material_param(grads: wp.array(dtype=float), index: int, tid: int, value: float):
-    """``add_param`` where the gradient is kept and ``value`` is not zero (a family's unused parameters)."""
-    if grads.shape[0] > 0 and value != 0.0:
-        add_param(grads, index, tid, value)
 
 @wp.kernel(enable_backward=False)
 def check_state(
