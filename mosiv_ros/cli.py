@@ -16,7 +16,6 @@ A thin layer: each command calls the core or the process runner.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import dataclasses
 import logging
 import os
@@ -24,7 +23,6 @@ import subprocess
 import sys
 import threading
 import typing
-from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
@@ -380,6 +378,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
 
     from mosiv_ros.graph import Graph, Stopped, graph_nodes
     from mosiv_ros.identify.estimates import ESTIMATES_FILE, Estimates
+    from mosiv_ros.identify.run import build_kernels_aside
     from mosiv_ros.io.bag import list_topics
     from mosiv_ros.io.files import OutputDir
     from mosiv_ros.pipeline import evaluate, fit_window
@@ -402,9 +401,9 @@ def cmd_graph(args: argparse.Namespace) -> int:
     # reconstruction of the bag runs beside the graph at the lowest priority, on what the nodes
     # leave of the cores (identification keeps one busy between its batched phases), and its
     # twin rolls out beside prediction_node's.
+    build_kernels_aside(config.identify.device)
     try:
-        with _kernels_built_aside(config.identify.device), \
-                ThreadPoolExecutor(1, initializer=_lowest_priority) as background, \
+        with ThreadPoolExecutor(1, initializer=_lowest_priority) as background, \
                 Graph(graph_nodes(bag, float(args.rate), bag, overrides), params_file=args.params_file,
                       env=domain) as graph:
             prepared = background.submit(prepare, bag, config)
@@ -429,28 +428,6 @@ def cmd_graph(args: argparse.Namespace) -> int:
     _print_summary(result)
     print(f"report: {out.path / 'report.md'} (whole run {time.perf_counter() - start:.0f} s)")
     return 0 if code == 0 and frame_sets else 1
-
-
-@contextlib.contextmanager
-def _kernels_built_aside(device: str) -> Iterator[None]:
-    """The kernels for ``device`` built and loaded while the block runs (``cmd_graph``).
-
-    A child process and a thread here build them: on an empty kernel cache each builds the
-    modules the other is not building (``sim.runtime``), so on two cores the build takes about
-    half as long. The child goes with the block.
-    """
-    from mosiv_ros.identify.run import build_kernels_aside
-
-    child = subprocess.Popen([sys.executable, "-c", "from mosiv_ros.sim import runtime, simulator; "
-                              f"runtime.start(); simulator.load_kernels({device!r})"],
-                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    build_kernels_aside(device)
-    try:
-        yield
-    finally:
-        if child.poll() is None:  # stopped before the build ended
-            child.kill()
-        child.wait()
 
 
 def _did_not_finish(error: Exception) -> int:

@@ -41,8 +41,8 @@ from mosiv_ros.lifting.lift import LiftedParticles
 from mosiv_ros.progress import Progress
 from mosiv_ros.recon.reconstruct import ObservedFrame
 from mosiv_ros.sim.errors import SimulationError
-from mosiv_ros.sim.runtime import load_modules, resolve_device
-from mosiv_ros.sim.simulator import load_kernels
+from mosiv_ros.sim.runtime import build_aside, load_modules, resolve_device
+from mosiv_ros.sim.simulator import kernel_modules
 
 _LOG = logging.getLogger(__name__)
 
@@ -61,18 +61,23 @@ class Identification:
 def build_kernels_aside(device: str) -> threading.Thread:
     """Build and load the kernels an identification on ``device`` launches, in a daemon thread.
 
-    On an empty kernel cache they take seconds to build (about 10 s on two CPU cores, 15-20 s on
-    an H100, the first run after an install or an upgrade). Started as the recording begins to
-    arrive (identify_node) or before the reconstruction (``mosiv run``), the build is done, or
-    further on, when the fit needs it; the fit then waits for the build under way rather than
-    starting another (``sim.runtime.load_modules``). A failure is logged: the fit meets the same
-    error and reports it.
+    On an empty kernel cache they take seconds to build (about 10 s on two CPU cores, 12 s on an
+    H200, the first run after an install or an upgrade). Helper processes build the modules
+    the thread has not reached, beside it (``sim.runtime.build_aside``); the thread ends when
+    they have. Started as the recording begins to arrive (identify_node) or before the
+    reconstruction (``mosiv run``), the build is done, or further on, when the fit needs it;
+    the fit then waits for the build under way rather than starting another
+    (``sim.runtime.load_modules``). A failure is logged: the fit meets the same error and
+    reports it.
     """
     def build() -> None:
         try:
             where = resolve_device(device)
-            load_kernels(where)
-            load_modules(where, [losses])
+            modules = [*kernel_modules(where), losses.__name__]
+            helpers = build_aside(where, modules)
+            load_modules(where, modules)
+            for helper in helpers:
+                helper.wait()
         except Exception as error:  # noqa: BLE001 - the fit meets the same error and reports it
             _LOG.warning("building the kernels ahead of the fit failed (the fit will try again): %s", error)
 

@@ -240,10 +240,10 @@ def _p2g(planes: int) -> wp.Kernel:
     three shorter chains side by side cost less than one long one, the stress computed three
     times included (``Simulator._spread`` picks the planes, ``simulator._p2g_planes``; one on
     the CPU, where every thread costs). With one thread a particle its adjoint is written out
-    (``p2g_adjoint_kernel``), so Warp generates one only for three.
+    (``p2g_adjoint_kernel``), so Warp generates one only for three. Each is a Warp module of its
+    own, so that processes build them side by side on an empty kernel cache (``runtime.build_aside``).
     """
 
-    @wp.kernel(enable_backward=planes == 3)
     def p2g(
         src_x: wp.array(dtype=wp.vec3),
         src_v: wp.array(dtype=wp.vec3),
@@ -339,7 +339,8 @@ def _p2g(planes: int) -> wp.Kernel:
             scatter_plane(grid_m, grid_p, plane, wx[plane], wy, wz, mass, at_origin, per_x, per_y, per_z,
                           offset, base, dims, run)
 
-    return p2g
+    module = wp.context.get_module(f"{__name__}.{'p2g' if planes == 1 else 'p2g_planes'}")
+    return wp.Kernel(p2g, key="p2g", module=module, options={"enable_backward": planes == 3})
 
 
 p2g = _p2g(1)

@@ -866,13 +866,26 @@ def _add_floats(a: wp.array(dtype=float), b: wp.array(dtype=float), out: wp.arra
     out[i] = a[i] + b[i]
 
 
+def kernel_modules(device: str, effects: Sequence[Effect] = ()) -> list[str]:
+    """The modules of the kernels that a simulation on ``device`` with ``effects`` may launch (``load_kernels``).
+
+    P2G with three threads a particle only on a GPU (``_p2g_planes``), and first: its module,
+    with Warp's adjoint, takes the longest to build (7.8 s on an H200). The grid update and
+    P2G's written adjoint are built for a scene's object count and families, each a module of
+    its own that the simulator loads itself (the written adjoint at the first backward).
+    """
+    planes = [] if device == "cpu" else [kernels.p2g_planes.module.name]
+    return list(dict.fromkeys([*planes, kernels.__name__, kernels.p2g.module.name, Parameters.__module__,
+                               Effect.__module__, __name__, *(type(e).__module__ for e in effects)]))
+
+
 def load_kernels(device: str, effects: Sequence[Effect] = ()) -> None:
     """Build and load every kernel a simulation on ``device`` with ``effects`` may launch.
 
     Built into the kernel cache when not there yet; before any launch (``sim.runtime`` says why).
     """
-    load_modules(resolve_device(device), [kernels.__name__, Parameters.__module__, Effect.__module__,
-                                          __name__, *(type(e).__module__ for e in effects)])
+    device = resolve_device(device)
+    load_modules(device, kernel_modules(device, effects))
 
 
 class Simulator:
@@ -953,7 +966,7 @@ class Simulator:
         self._written = {kernels.g2p: (kernels.g2p_adjoint, _G2P_ADJOINTS),
                          kernels.p2g: (p2g_adjoint, _P2G_ADJOINTS),
                          self._grid_update: (grid_adjoint, _GRID_UPDATE_ADJOINTS)}
-        load_modules(self.device, [self._grid_update.module.name, p2g_adjoint.module.name])
+        load_modules(self.device, [self._grid_update.module.name])
         # what the kernels read besides the bundles a launch passes (_bind); these arrays live
         # as long as the simulator (parameter values are written into their replicas)
         self._scene = {
@@ -1026,6 +1039,7 @@ class Simulator:
         self._scene["plane_threads"] = plane_threads
         self._p2g = kernels.p2g_planes if planes > 1 else kernels.p2g
         self._p2g_threads = plane_threads * planes
+        load_modules(self.device, [self._p2g.module.name])
 
     def _uniform_arrays(self) -> tuple[list[wp.array], list[wp.array]]:
         """The replicas of the uniform accelerations (``Effect.uniform``) and their running sums.
@@ -1849,6 +1863,8 @@ class Simulator:
         """
         if self._record is None:
             raise RuntimeError("backward() needs a preceding rollout(..., grad=True)")
+        if self._p2g is kernels.p2g:  # its written adjoint, built by the first backward (4.4 s on an empty cache, H200)
+            load_modules(self.device, [self._written[kernels.p2g][0].module.name])
         checkpoints, n_sub, dt, substeps, start = (
             self._record[k] for k in ("checkpoints", "n_sub", "dt", "substeps", "start_frame"))
         n_frames = len(checkpoints) - 1
