@@ -76,8 +76,9 @@ def build_kernels_aside(device: str) -> threading.Thread:
             modules = [*kernel_modules(where), losses.__name__]
             helpers = build_aside(where, modules)
             load_modules(where, modules)
-            for helper in helpers:
-                helper.wait()
+            for helper in helpers:  # a helper that failed left its modules to this thread
+                if helper.wait() != 0:
+                    _LOG.debug("a helper process building kernels ended with code %d", helper.returncode)
         except Exception as error:  # noqa: BLE001 - the fit meets the same error and reports it
             _LOG.warning("building the kernels ahead of the fit failed (the fit will try again): %s", error)
 
