@@ -231,7 +231,9 @@ def build_aside(device: str, names: Sequence[str]) -> list[subprocess.Popen]:
     exits is ended with it.
     """
     start()
-    missing = [name for name in names if not cached(_module(name), device)]
+    modules = {name: _module(name) for name in names}  # imported outside the lock
+    with _LOCK:  # a module's hash is computed once, as a load does it (``cached``)
+        missing = [name for name, module in modules.items() if not cached(module, device)]
     count = min(len(missing), os.cpu_count() or 1) - 1
     if count <= 0:
         return []
