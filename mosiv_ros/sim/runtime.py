@@ -210,6 +210,11 @@ def _module(name: str) -> wp.context.Module:
     return wp.context.user_modules[name]
 
 
+MAX_HELPERS = 3
+"""The most helper processes ``build_aside`` starts. Each is a Python process with, on a GPU, a
+CUDA context of its own, and a build takes at least as long as its largest module, which the
+caller lists first: with six helpers on an H200 the six other modules were ready 2.9 s before
+the largest (P2G with three threads a particle, 7.8 s)."""
 _helpers: list[subprocess.Popen] = []
 """Helper processes (``build_aside``) of this process, ended at its exit if still building."""
 
@@ -224,17 +229,17 @@ def _end_helpers() -> None:
 def build_aside(device: str, names: Sequence[str]) -> list[subprocess.Popen]:
     """Start helper processes that build the modules of ``names`` the kernel cache lacks, beside this one.
 
-    One fewer helper than those modules, and no more than the cores less one: each takes a
-    module that no process is building (``build_free``), and this process, loading them
-    (``load_modules``), builds the others or waits for a helper's build and loads it from the
-    cache. None where the cache holds every module. A helper still building when this process
+    One fewer helper than those modules, no more than the cores less one, and at most
+    ``MAX_HELPERS``: each takes a module that no process is building (``build_free``), and
+    this process, loading them (``load_modules``), builds the others or waits for a helper's
+    build and loads it from the cache. None where the cache holds every module. A helper still building when this process
     exits is ended with it.
     """
     start()
     modules = {name: _module(name) for name in names}  # imported outside the lock
     with _LOCK:  # a module's hash is computed once, as a load does it (``cached``)
         missing = [name for name, module in modules.items() if not cached(module, device)]
-    count = min(len(missing), os.cpu_count() or 1) - 1
+    count = min(len(missing) - 1, (os.cpu_count() or 1) - 1, MAX_HELPERS)
     if count <= 0:
         return []
     env = dict(os.environ, WARP_CACHE_PATH=wp.config.kernel_cache_dir)
