@@ -232,8 +232,8 @@ def build_aside(device: str, names: Sequence[str]) -> list[subprocess.Popen]:
     One fewer helper than those modules, no more than the cores less one, and at most
     ``MAX_HELPERS``: each takes a module that no process is building (``build_free``), and
     this process, loading them (``load_modules``), builds the others or waits for a helper's
-    build and loads it from the cache. None where the cache holds every module. A helper still building when this process
-    exits is ended with it.
+    build and loads it from the cache. None where the cache holds every module. A helper still
+    building when this process exits is ended with it.
     """
     start()
     modules = {name: _module(name) for name in names}  # imported outside the lock
