@@ -910,8 +910,6 @@ def test_helper_processes_build_the_modules_the_cache_lacks_and_skip_those_anoth
     # sim.runtime.build_aside and build_free, on an empty kernel cache of their own
     import fcntl
     import os
-    import subprocess
-    import sys
 
     from mosiv_ros.sim import runtime
 
@@ -922,15 +920,9 @@ def test_helper_processes_build_the_modules_the_cache_lacks_and_skip_those_anoth
     monkeypatch.setattr(wp.config, "kernel_cache_dir", str(cache))  # where cached() and lock_file() look
     names = ["mosiv_ros.sim.params", "mosiv_ros.sim.simulator", "mosiv_ros.sim.effects"]
     assert not any(runtime.cached(runtime._module(name), DEVICE) for name in names)
-
-    def build_free(*modules: str) -> None:
-        code = "import sys; from mosiv_ros.sim import runtime; runtime.build_free(sys.argv[1], sys.argv[2:])"
-        subprocess.run([sys.executable, "-c", code, DEVICE, *modules], env=dict(os.environ, WARP_CACHE_PATH=str(cache)),
-                       check=True, timeout=600)
-
     with open(lock_file(names[1]), "a") as lock:  # another process building the simulator's module
         fcntl.flock(lock, fcntl.LOCK_EX)
-        build_free(*names[:2])
+        assert runtime.start_helper(DEVICE, names[:2]).wait(timeout=600) == 0
     assert runtime.cached(runtime._module(names[0]), DEVICE)
     assert not any(runtime.cached(runtime._module(name), DEVICE) for name in names[1:])  # skipped, not waited for
     helpers = runtime.build_aside(DEVICE, names)  # two missing: one helper (two cores or more)

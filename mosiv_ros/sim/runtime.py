@@ -242,17 +242,21 @@ def build_aside(device: str, names: Sequence[str]) -> list[subprocess.Popen]:
     count = min(len(missing) - 1, (os.cpu_count() or 1) - 1, MAX_HELPERS)
     if count <= 0:
         return []
-    env = dict(os.environ, WARP_CACHE_PATH=wp.config.kernel_cache_dir)
-    command = [sys.executable, "-c", "import sys; from mosiv_ros.sim import runtime; "
-               "runtime.build_free(sys.argv[1], sys.argv[2:])", device, *missing]
-    helpers = [subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL) for _ in range(count)]
+    helpers = [start_helper(device, missing) for _ in range(count)]
     with _LOCK:
         if not _helpers:
             atexit.register(_end_helpers)
         _helpers.extend(helpers)
     _LOG.info("%d helper process(es) building kernels into the cache beside this one", count)
     return helpers
+
+
+def start_helper(device: str, names: Sequence[str]) -> subprocess.Popen:
+    """A helper process (``build_free``) for the modules ``names``, on this process's kernel cache."""
+    command = [sys.executable, "-c", "import sys; from mosiv_ros.sim import runtime; "
+               "runtime.build_free(sys.argv[1], sys.argv[2:])", device, *names]
+    return subprocess.Popen(command, env=dict(os.environ, WARP_CACHE_PATH=wp.config.kernel_cache_dir),
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
 def build_free(device: str, names: Sequence[str]) -> None:

@@ -1505,7 +1505,8 @@ class Simulator:
                     helper: ThreadPoolExecutor | None = None) -> None:
         """The adjoint of one ``launch`` recorded on ``tape`` (``_adjoint_launch``'s ``key``, ``helper``).
 
-        G2P's and the grid update's are written out (``self._written``), every other kernel's Warp's.
+        G2P's, the grid update's and P2G's with one thread a particle are written out
+        (``self._written``), every other kernel's Warp's.
         """
         kernel, dim, max_blocks, inputs, outputs = launch[:5]
         args = [*inputs, *outputs]
@@ -1522,7 +1523,7 @@ class Simulator:
                         tape: wp.Tape, helper: ThreadPoolExecutor | None = None, written: bool = False) -> None:
         """Warp's adjoint of a launch of ``kernel`` with ``args``, or ``kernel`` itself if ``written``.
 
-        A written adjoint (``kernels.g2p_adjoint``, the grid update's) is a kernel of its own that
+        A written adjoint (``kernels.g2p_adjoint``, P2G's, the grid update's) is a kernel of its own that
         takes the adjoints among its arguments. On the CPU a kernel with ``part`` and ``parts`` arguments
         (P2G) runs in ``ADJOINT_PARTS`` parts, the others on ``helper``'s thread
         (``params.lane_particle`` says why they may), each under a ``key`` of its own.
